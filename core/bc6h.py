@@ -1,0 +1,764 @@
+"""BC6H block codec: bit-exact decode of all 14 modes, encode of modes 10 and 11, partition search,
+and the differentiable decode used for training (paper eq. 7-9).
+
+Everything is vectorised over blocks; the only Python loops run over the 14 modes, 32 partitions or
+16 pixels of the format, never over blocks. The codec knows nothing about files or training.
+
+Conventions
+- A block is 16 bytes (uint8), read little-endian as a 128-bit integer, bit 0 first.
+- Texels inside a block are in row-major pixel order 0..15; decoded texels have shape (..., 16, 3).
+- "Half bits" are the 16-bit patterns of IEEE half floats. For UF16 the decoder yields 0..0x7BFF; for SF16
+  a sign-magnitude pattern (0x8000 | magnitude for negatives).
+- Mode numbers are Microsoft's 1..14. The mode field's value ("code") is what the block stores.
+
+Sources: Microsoft's BC6H format page (unquantize, finish, sign extension, transform) and the OpenGL
+ARB_texture_compression_bptc text (Table.F: the bit layout of every mode, whose notation we parse below;
+Table.P2 and Table.A2: partitions and anchors).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from functools import cache
+
+import numpy as np
+import torch
+
+BLOCK_BYTES = 16
+BLOCK_TEXELS = 16
+UF16_MAX_BITS = 0x7BFF  # largest finite half: the unsigned decoder never exceeds it
+
+WEIGHTS_3BIT = np.array([0, 9, 18, 27, 37, 46, 55, 64], dtype=np.int64)
+WEIGHTS_4BIT = np.array([0, 4, 9, 13, 17, 21, 26, 30, 34, 38, 43, 47, 51, 55, 60, 64], dtype=np.int64)
+
+# Bit i set: pixel i (row-major) belongs to subset 1. Same as the first 32 BC7 two-subset partitions.
+PARTITION_MASKS = np.array([
+    0xCCCC, 0x8888, 0xEEEE, 0xECC8, 0xC880, 0xFEEC, 0xFEC8, 0xEC80,
+    0xC800, 0xFFEC, 0xFE80, 0xE800, 0xFFE8, 0xFF00, 0xFFF0, 0xF000,
+    0xF710, 0x008E, 0x7100, 0x08CE, 0x008C, 0x7310, 0x3100, 0x8CCE,
+    0x088C, 0x3110, 0x6666, 0x366C, 0x17E8, 0x0FF0, 0x718E, 0x399C,
+], dtype=np.int64)
+# Pixel whose index is stored with one bit fewer in subset 1 (subset 0's anchor is always pixel 0).
+SUBSET1_ANCHORS = np.array([
+    15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15, 15,
+    15, 2, 8, 2, 2, 8, 8, 15, 2, 8, 2, 2, 8, 8, 2, 2,
+], dtype=np.int64)
+# (32, 16) subset of each pixel under each partition.
+PARTITION_SUBSETS = (PARTITION_MASKS[:, None] >> np.arange(16)[None, :]) & 1
+
+
+@dataclass(frozen=True)
+class ModeSpec:
+    """One BC6H mode: everything the decoder needs, described by data."""
+
+    number: int  # Microsoft's mode number, 1..14
+    code: int  # value of the mode field
+    code_bits: int  # 2 or 5
+    regions: int  # 1 or 2
+    endpoint_bits: int  # precision of the base endpoint (and of every endpoint after the transform)
+    delta_bits: tuple[int, int, int]  # stored bits of the other endpoints, per channel R, G, B
+    transformed: bool  # other endpoints are deltas from endpoint 0
+    layout: str  # bit layout from bit 0 upward, notation of ARB_texture_compression_bptc Table.F
+
+    @property
+    def index_bits(self) -> int:
+        return 3 if self.regions == 2 else 4
+
+    @property
+    def index_start(self) -> int:
+        """First bit of the index field: 82 for two-region modes, 65 for one-region modes."""
+        return 128 - (46 if self.regions == 2 else 63)
+
+
+MODES: tuple[ModeSpec, ...] = (
+    ModeSpec(1, 0b00, 2, 2, 10, (5, 5, 5), True,
+             "m[1:0],g2[4],b2[4],b3[4],r0[9:0],g0[9:0],b0[9:0],r1[4:0],g3[4],g2[3:0],"
+             "g1[4:0],b3[0],g3[3:0],b1[4:0],b3[1],b2[3:0],r2[4:0],b3[2],r3[4:0],b3[3]"),
+    ModeSpec(2, 0b01, 2, 2, 7, (6, 6, 6), True,
+             "m[1:0],g2[5],g3[4],g3[5],r0[6:0],b3[0],b3[1],b2[4],g0[6:0],b2[5],b3[2],"
+             "g2[4],b0[6:0],b3[3],b3[5],b3[4],r1[5:0],g2[3:0],g1[5:0],g3[3:0],b1[5:0],"
+             "b2[3:0],r2[5:0],r3[5:0]"),
+    ModeSpec(3, 0b00010, 5, 2, 11, (5, 4, 4), True,
+             "m[4:0],r0[9:0],g0[9:0],b0[9:0],r1[4:0],r0[10],g2[3:0],g1[3:0],g0[10],"
+             "b3[0],g3[3:0],b1[3:0],b0[10],b3[1],b2[3:0],r2[4:0],b3[2],r3[4:0],b3[3]"),
+    ModeSpec(4, 0b00110, 5, 2, 11, (4, 5, 4), True,
+             "m[4:0],r0[9:0],g0[9:0],b0[9:0],r1[3:0],r0[10],g3[4],g2[3:0],g1[4:0],"
+             "g0[10],g3[3:0],b1[3:0],b0[10],b3[1],b2[3:0],r2[3:0],b3[0],b3[2],r3[3:0],"
+             "g2[4],b3[3]"),
+    ModeSpec(5, 0b01010, 5, 2, 11, (4, 4, 5), True,
+             "m[4:0],r0[9:0],g0[9:0],b0[9:0],r1[3:0],r0[10],b2[4],g2[3:0],g1[3:0],"
+             "g0[10],b3[0],g3[3:0],b1[4:0],b0[10],b2[3:0],r2[3:0],b3[1],b3[2],r3[3:0],"
+             "b3[4],b3[3]"),
+    ModeSpec(6, 0b01110, 5, 2, 9, (5, 5, 5), True,
+             "m[4:0],r0[8:0],b2[4],g0[8:0],g2[4],b0[8:0],b3[4],r1[4:0],g3[4],g2[3:0],"
+             "g1[4:0],b3[0],g3[3:0],b1[4:0],b3[1],b2[3:0],r2[4:0],b3[2],r3[4:0],b3[3]"),
+    ModeSpec(7, 0b10010, 5, 2, 8, (6, 5, 5), True,
+             "m[4:0],r0[7:0],g3[4],b2[4],g0[7:0],b3[2],g2[4],b0[7:0],b3[3],b3[4],"
+             "r1[5:0],g2[3:0],g1[4:0],b3[0],g3[3:0],b1[4:0],b3[1],b2[3:0],r2[5:0],"
+             "r3[5:0]"),
+    ModeSpec(8, 0b10110, 5, 2, 8, (5, 6, 5), True,
+             "m[4:0],r0[7:0],b3[0],b2[4],g0[7:0],g2[5],g2[4],b0[7:0],g3[5],b3[4],"
+             "r1[4:0],g3[4],g2[3:0],g1[5:0],g3[3:0],b1[4:0],b3[1],b2[3:0],r2[4:0],"
+             "b3[2],r3[4:0],b3[3]"),
+    ModeSpec(9, 0b11010, 5, 2, 8, (5, 5, 6), True,
+             "m[4:0],r0[7:0],b3[1],b2[4],g0[7:0],b2[5],g2[4],b0[7:0],b3[5],b3[4],"
+             "r1[4:0],g3[4],g2[3:0],g1[4:0],b3[0],g3[3:0],b1[5:0],b2[3:0],r2[4:0],"
+             "b3[2],r3[4:0],b3[3]"),
+    ModeSpec(10, 0b11110, 5, 2, 6, (6, 6, 6), False,
+             "m[4:0],r0[5:0],g3[4],b3[0],b3[1],b2[4],g0[5:0],g2[5],b2[5],b3[2],"
+             "g2[4],b0[5:0],g3[5],b3[3],b3[5],b3[4],r1[5:0],g2[3:0],g1[5:0],g3[3:0],"
+             "b1[5:0],b2[3:0],r2[5:0],r3[5:0]"),
+    ModeSpec(11, 0b00011, 5, 1, 10, (10, 10, 10), False,
+             "m[4:0],r0[9:0],g0[9:0],b0[9:0],r1[9:0],g1[9:0],b1[9:0]"),
+    ModeSpec(12, 0b00111, 5, 1, 11, (9, 9, 9), True,
+             "m[4:0],r0[9:0],g0[9:0],b0[9:0],r1[8:0],r0[10],g1[8:0],g0[10],b1[8:0],b0[10]"),
+    ModeSpec(13, 0b01011, 5, 1, 12, (8, 8, 8), True,
+             "m[4:0],r0[9:0],g0[9:0],b0[9:0],r1[7:0],r0[10:11],g1[7:0],g0[10:11],"
+             "b1[7:0],b0[10:11]"),
+    ModeSpec(14, 0b01111, 5, 1, 16, (4, 4, 4), True,
+             "m[4:0],r0[9:0],g0[9:0],b0[9:0],r1[3:0],r0[10:15],g1[3:0],g0[10:15],"
+             "b1[3:0],b0[10:15]"),
+)
+RESERVED_CODES = (0b10011, 0b10111, 0b11011, 0b11111)
+MODE_10 = MODES[9]
+MODE_11 = MODES[10]
+
+
+def mode_spec(number: int) -> ModeSpec:
+    """The ModeSpec of Microsoft's mode `number` (1..14)."""
+    if not 1 <= number <= 14:
+        raise ValueError(f"BC6H mode must be 1..14, got {number}")
+    return MODES[number - 1]
+
+
+# ---------------------------------------------------------------------------------------------
+# Bit layout tables, derived once from the layout strings.
+
+_FIELD = re.compile(r"([mrgb])(\d?)\[(\d+)(?::(\d+))?\]")
+_NO_BIT = 128  # index of an always-zero column appended to the unpacked bits
+
+
+@dataclass(frozen=True)
+class _Layout:
+    # (12, 16): block bit holding bit k of endpoint field f, or _NO_BIT. f = endpoint * 3 + channel;
+    # endpoints 0, 1 are subset 0's, endpoints 2, 3 subset 1's.
+    field_bits: np.ndarray
+    # (P, 16, 4): block bit holding bit k of pixel i's index under partition p (P = 32 or 1), or _NO_BIT.
+    index_bits: np.ndarray
+    # (5,) block bits of the partition number (two-region modes only).
+    partition_bits: np.ndarray
+
+
+def _parse_layout(layout: str) -> list[tuple[str, int]]:
+    """Expand a Table.F string into one (field, bit) per block bit, bit 0 first."""
+    out: list[tuple[str, int]] = []
+    for token in layout.split(","):
+        match = _FIELD.fullmatch(token.strip())
+        if match is None:
+            raise ValueError(f"bad layout token {token!r}")
+        name = match[1] + match[2]
+        a = int(match[3])
+        b = int(match[4]) if match[4] is not None else a
+        # The block's next bit goes to value bit b, then on toward a: v[9:0] fills bits 0..9 upward,
+        # and the reversed v[10:15] fills bits 15 down to 10.
+        step = 1 if a >= b else -1
+        out.extend((name, bit) for bit in range(b, a + step, step))
+    return out
+
+
+@cache
+def _layout(spec: ModeSpec) -> _Layout:
+    fields = np.full((12, 16), _NO_BIT, dtype=np.int64)
+    for position, (name, bit) in enumerate(_parse_layout(spec.layout)):
+        if name != "m":
+            fields["rgb".index(name[0]) + 3 * int(name[1]), bit] = position
+    q = spec.index_bits
+    anchors = SUBSET1_ANCHORS if spec.regions == 2 else np.array([-1])
+    index_bits = np.full((len(anchors), 16, 4), _NO_BIT, dtype=np.int64)
+    for p, anchor in enumerate(anchors):
+        widths = np.full(16, q)
+        widths[0] -= 1
+        if anchor >= 0:
+            widths[anchor] -= 1
+        starts = spec.index_start + np.concatenate([[0], np.cumsum(widths)[:-1]])
+        for k in range(q):
+            index_bits[p, k < widths, k] = starts[k < widths] + k
+    partition_bits = np.arange(77, 82) if spec.regions == 2 else np.zeros(0, dtype=np.int64)
+    return _Layout(fields, index_bits, partition_bits)
+
+
+def _bits_to_int(gathered: np.ndarray) -> np.ndarray:
+    """(..., K) bits, least significant first -> (...) int64."""
+    weights = np.int64(1) << np.arange(gathered.shape[-1], dtype=np.int64)
+    return (gathered.astype(np.int64) * weights).sum(-1)
+
+
+def _gather_bits(bits: np.ndarray, positions: np.ndarray) -> np.ndarray:
+    """bits (n, 129) with an always-zero last column; positions (P..., K) shared by every block.
+    Returns (n, P...): the integers whose bit k is bits[block, positions[..., k]]."""
+    return _bits_to_int(bits[:, positions])
+
+
+def _gather_bits_per_block(bits: np.ndarray, positions: np.ndarray) -> np.ndarray:
+    """Like `_gather_bits` with positions (n, P..., K) chosen per block."""
+    rows = np.arange(len(bits)).reshape(-1, *([1] * (positions.ndim - 1)))
+    return _bits_to_int(bits[rows, positions])
+
+
+# ---------------------------------------------------------------------------------------------
+# Bit-exact integer pipeline (shared by the decoder and the differentiable decode's forward pass).
+
+
+def _sign_extend(value: np.ndarray, bits: np.ndarray | int) -> np.ndarray:
+    sign = np.int64(1) << (np.asarray(bits, dtype=np.int64) - 1)
+    return (value ^ sign) - sign
+
+
+# The next three functions use only arithmetic operators so that the same lines run on numpy int64
+# arrays (the decoder) and torch int64 tensors (the training forward pass): one integer pipeline.
+
+
+def unquantize(e, bits: int, signed: bool):
+    """Expand an endpoint of `bits` precision to the 17-bit interpolation domain (Microsoft's unquantize)."""
+    if not signed:
+        if bits >= 15:
+            return e
+        out = (((e << 16) + 0x8000) >> bits) * (e != 0)
+        top = e == (1 << bits) - 1
+        return out + (0xFFFF - out) * top
+    if bits >= 16:
+        return e
+    magnitude = abs(e)
+    out = (((magnitude << 15) + 0x4000) >> (bits - 1)) * (magnitude != 0)
+    saturated = magnitude >= (1 << (bits - 1)) - 1
+    out = out + (0x7FFF - out) * saturated
+    return out - 2 * out * (e < 0)
+
+
+def interpolate(a, b, weight):
+    """Palette entry between unquantized endpoints a and b for a 6-bit weight (0..64)."""
+    return (a * (64 - weight) + b * weight + 32) >> 6
+
+
+def finish_magnitude(c, signed: bool):
+    """Magnitude bits (0..0x7BFF) of the half that an interpolated value c becomes (finish_unquantize).
+    Its sign is c < 0 (SF16 only): the half bits are magnitude | 0x8000 for negative c, -0 included."""
+    if not signed:
+        return (c * 31) >> 6
+    return (abs(c) * 31) >> 5
+
+
+# ---------------------------------------------------------------------------------------------
+# Decoder
+
+
+def decode_blocks(blocks: np.ndarray, signed: bool) -> np.ndarray:
+    """Decode BC6H blocks to half floats.
+
+    blocks: (..., 16) uint8. Returns (..., 16, 3) float16 texels in row-major pixel order.
+    Reserved modes decode to zero, as the format requires.
+    """
+    blocks = np.ascontiguousarray(blocks, dtype=np.uint8)
+    if blocks.shape[-1:] != (BLOCK_BYTES,):
+        raise ValueError(f"blocks must have shape (..., 16), got {blocks.shape}")
+    lead = blocks.shape[:-1]
+    flat = blocks.reshape(-1, BLOCK_BYTES)
+    bits = np.unpackbits(flat, axis=-1, bitorder="little")
+    bits = np.concatenate([bits, np.zeros((len(flat), 1), dtype=np.uint8)], axis=1)
+    low2 = flat[:, 0] & 0b11
+    code = np.where(low2 < 2, low2, flat[:, 0] & 0b11111)
+    half_bits = np.zeros((len(flat), BLOCK_TEXELS, 3), dtype=np.uint16)
+    for spec in MODES:
+        selected = np.flatnonzero(code == spec.code)
+        if selected.size:
+            half_bits[selected] = _decode_mode(bits[selected], spec, signed)
+    return half_bits.view(np.float16).reshape(*lead, BLOCK_TEXELS, 3)
+
+
+def _endpoints_from_fields(raw: np.ndarray, spec: ModeSpec, signed: bool) -> np.ndarray:
+    """Stored endpoint fields (n, 12) -> endpoints at full precision (n, 2*regions, 3), signed ints."""
+    count = 2 * spec.regions
+    raw = raw[:, : 3 * count].reshape(-1, count, 3)
+    base = spec.endpoint_bits
+    delta = np.array(spec.delta_bits, dtype=np.int64)
+    e = raw.copy()
+    if signed:
+        e[:, 0] = _sign_extend(raw[:, 0], base)
+    others = e[:, 1:]
+    if spec.transformed or signed:
+        stored_bits = delta if spec.transformed else base
+        others = _sign_extend(raw[:, 1:], stored_bits)
+    if spec.transformed:
+        others = (others + raw[:, :1]) & ((1 << base) - 1)
+        if signed:
+            others = _sign_extend(others, base)
+    e[:, 1:] = others
+    return e
+
+
+def _decode_mode(bits: np.ndarray, spec: ModeSpec, signed: bool) -> np.ndarray:
+    """Half bits (n, 16, 3) of n blocks that all use `spec`."""
+    layout = _layout(spec)
+    endpoints = _endpoints_from_fields(_gather_bits(bits, layout.field_bits), spec, signed)
+    unq = unquantize(endpoints, spec.endpoint_bits, signed)  # (n, 2R, 3)
+    if spec.regions == 2:
+        partition = _gather_bits(bits, layout.partition_bits)
+        subset = PARTITION_SUBSETS[partition]  # (n, 16)
+        index = _gather_bits_per_block(bits, layout.index_bits[partition])  # (n, 16)
+    else:
+        subset = np.zeros((len(bits), 16), dtype=np.int64)
+        index = _gather_bits(bits, layout.index_bits[0])
+    table = WEIGHTS_3BIT if spec.index_bits == 3 else WEIGHTS_4BIT
+    rows = np.arange(len(bits))[:, None]
+    a = unq[rows, 2 * subset]  # (n, 16, 3)
+    b = unq[rows, 2 * subset + 1]
+    c = interpolate(a, b, table[index][..., None])
+    return (finish_magnitude(c, signed) | (0x8000 * (c < 0))).astype(np.uint16)
+
+
+# ---------------------------------------------------------------------------------------------
+# Encoder (modes 10 and 11: explicit endpoints, what the model trains)
+
+
+def _pack(spec: ModeSpec, fields: np.ndarray, index: np.ndarray, partition: np.ndarray | None) -> np.ndarray:
+    """Write raw fields into blocks. fields (n, 12) unsigned stored bit patterns; index (n, 16), whose
+    anchor pixels must have their top bit clear; partition (n,) or None. Returns (n, 16) uint8."""
+    n = len(fields)
+    layout = _layout(spec)
+    bits = np.zeros((n, 129), dtype=np.uint8)
+    for k in range(spec.code_bits):
+        bits[:, k] = (spec.code >> k) & 1
+    value_bit = np.arange(16, dtype=np.int64)
+    placed = layout.field_bits != _NO_BIT  # (12, 16)
+    field_values = (fields[:, :, None] >> value_bit) & 1  # (n, 12, 16)
+    bits[:, layout.field_bits[placed]] = field_values[:, placed]
+    if partition is not None:
+        bits[:, layout.partition_bits] = (partition[:, None] >> np.arange(5)) & 1
+        positions = layout.index_bits[partition]  # (n, 16, 4)
+    else:
+        positions = np.broadcast_to(layout.index_bits[0], (n, 16, 4))
+    index_values = (index[:, :, None] >> np.arange(4)) & 1
+    rows = np.broadcast_to(np.arange(n)[:, None, None], positions.shape)
+    used = positions != _NO_BIT
+    bits[rows[used], positions[used]] = index_values[used]
+    return np.packbits(bits[:, :128], axis=-1, bitorder="little")
+
+
+def _apply_anchor_rule(endpoints: np.ndarray, index: np.ndarray, subset: np.ndarray,
+                       anchors: np.ndarray, index_bits: int) -> tuple[np.ndarray, np.ndarray]:
+    """Swap a subset's endpoints and invert its indices where its anchor index has the top bit set.
+
+    endpoints (n, R, 2, 3), index (n, 16), subset (n, 16), anchors (n, R) pixel of each subset's anchor.
+    The decoded block is unchanged; the anchor's top bit becomes implicitly zero as the format requires.
+    """
+    top = 1 << (index_bits - 1)
+    rows = np.arange(len(index))[:, None]
+    flip = (index[rows, anchors] & top) != 0  # (n, R)
+    endpoints = np.where(flip[:, :, None, None], endpoints[:, :, ::-1], endpoints)
+    flip_pixel = np.take_along_axis(flip, subset, axis=1)
+    index = np.where(flip_pixel, (2 * top - 1) - index, index)
+    return endpoints, index
+
+
+def _endpoint_range(bits: int, signed: bool) -> tuple[int, int]:
+    return (-(1 << (bits - 1)), (1 << (bits - 1)) - 1) if signed else (0, (1 << bits) - 1)
+
+
+def _check_int_range(name: str, values: np.ndarray, low: int, high: int) -> np.ndarray:
+    values = np.asarray(values)
+    if not np.issubdtype(values.dtype, np.integer):
+        raise TypeError(f"{name} must be integers, got {values.dtype}")
+    if values.size and (values.min() < low or values.max() > high):
+        raise ValueError(f"{name} must lie in [{low}, {high}], got [{values.min()}, {values.max()}]")
+    return values.astype(np.int64)
+
+
+def encode_mode10(endpoints: np.ndarray, index: np.ndarray, partition: np.ndarray, signed: bool) -> np.ndarray:
+    """Encode two-region mode-10 blocks.
+
+    endpoints: (n, 2, 2, 3) ints, [block, subset, endpoint, channel], 6-bit: 0..63 (UF16) or -32..31 (SF16).
+    index: (n, 16) ints 0..7 per pixel (row-major); partition: (n,) ints 0..31. Subset 1 holds the pixels
+    whose bit is set in PARTITION_MASKS[partition]. Returns (n, 16) uint8 blocks that decode to exactly
+    these parameters (endpoints swapped and indices inverted where the anchor rule needs it).
+    """
+    low, high = _endpoint_range(6, signed)
+    endpoints = _check_int_range("endpoints", endpoints, low, high)
+    index = _check_int_range("index", index, 0, 7)
+    partition = _check_int_range("partition", partition, 0, 31)
+    n = len(index)
+    if endpoints.shape != (n, 2, 2, 3) or index.shape != (n, 16) or partition.shape != (n,):
+        raise ValueError("expected endpoints (n, 2, 2, 3), index (n, 16), partition (n,); got "
+                         f"{endpoints.shape}, {index.shape}, {partition.shape}")
+    anchors = np.stack([np.zeros(n, dtype=np.int64), SUBSET1_ANCHORS[partition]], axis=1)
+    endpoints, index = _apply_anchor_rule(endpoints, index, PARTITION_SUBSETS[partition], anchors, 3)
+    fields = endpoints.reshape(n, 12) & 0x3F  # two's complement for SF16
+    return _pack(MODE_10, fields, index, partition)
+
+
+def encode_mode11(endpoints: np.ndarray, index: np.ndarray, signed: bool) -> np.ndarray:
+    """Encode one-region mode-11 blocks.
+
+    endpoints: (n, 2, 3) ints, 10-bit: 0..1023 (UF16) or -512..511 (SF16); index: (n, 16) ints 0..15.
+    Returns (n, 16) uint8 blocks that decode to exactly these parameters.
+    """
+    low, high = _endpoint_range(10, signed)
+    endpoints = _check_int_range("endpoints", endpoints, low, high)
+    index = _check_int_range("index", index, 0, 15)
+    n = len(index)
+    if endpoints.shape != (n, 2, 3) or index.shape != (n, 16):
+        raise ValueError(f"expected endpoints (n, 2, 3), index (n, 16); got {endpoints.shape}, {index.shape}")
+    anchors = np.zeros((n, 1), dtype=np.int64)
+    subset = np.zeros((n, 16), dtype=np.int64)
+    endpoints, index = _apply_anchor_rule(endpoints[:, None], index, subset, anchors, 4)
+    fields = np.zeros((n, 12), dtype=np.int64)
+    fields[:, :6] = endpoints.reshape(n, 6) & 0x3FF
+    return _pack(MODE_11, fields, index, None)
+
+
+# ---------------------------------------------------------------------------------------------
+# Images <-> blocks
+
+
+def image_to_block_texels(image: np.ndarray) -> np.ndarray:
+    """(h, w, 3) -> (ceil(h/4), ceil(w/4), 16, 3) texels per block, padding by repeating the last row/column."""
+    h, w, channels = image.shape
+    bh, bw = -(-h // 4), -(-w // 4)
+    padded = np.pad(image, ((0, 4 * bh - h), (0, 4 * bw - w), (0, 0)), mode="edge")
+    return padded.reshape(bh, 4, bw, 4, channels).transpose(0, 2, 1, 3, 4).reshape(bh, bw, 16, channels)
+
+
+def block_texels_to_image(texels: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(bh, bw, 16, C) -> (height, width, C), cropping the padding of partial blocks."""
+    bh, bw, _, channels = texels.shape
+    image = texels.reshape(bh, bw, 4, 4, channels).transpose(0, 2, 1, 3, 4).reshape(4 * bh, 4 * bw, channels)
+    return image[:height, :width]
+
+
+def decode_image(blocks: np.ndarray, width: int, height: int, signed: bool) -> np.ndarray:
+    """Decode one texture level: blocks (ceil(h/4), ceil(w/4), 16) uint8 -> (height, width, 3) float16."""
+    return block_texels_to_image(decode_blocks(blocks, signed), width, height)
+
+
+# ---------------------------------------------------------------------------------------------
+# Half bits <-> values (paper eq. 9) and the continuous endpoint domain
+
+
+def half_bits_to_value(v: torch.Tensor) -> torch.Tensor:
+    """Paper eq. 9: the value of the half whose bit pattern is the magnitude v (0..0x7BFF), as a
+    piecewise-linear function of v. Exact in float32 at integer v; differentiable in v."""
+    exponent = torch.clamp(torch.floor(v.detach() / 1024.0) - 1.0, min=0.0)  # h(v) of eq. 9
+    return torch.exp2(exponent - 14.0) * (v / 1024.0 - exponent)
+
+
+def value_to_half_bits(x: np.ndarray, signed: bool) -> np.ndarray:
+    """Inverse of eq. 9 for real values: a continuous (float64) half-bit coordinate in which BC6H
+    interpolates linearly. Unsigned values are clamped to [0, 65504]; signed ones to [-65504, 65504]
+    and returned as sign * magnitude bits."""
+    x = np.asarray(x, dtype=np.float64)
+    low = -65504.0 if signed else 0.0
+    x = np.clip(np.nan_to_num(x, nan=0.0), low, 65504.0)
+    magnitude = np.abs(x)
+    exponent = np.clip(np.floor(np.log2(np.maximum(magnitude, 2.0**-24))), -14, 15)
+    # Normal halves: v = 1024 * (e + 15) + 1024 * (m / 2^e - 1); subnormals: v = m * 2^24.
+    normal = 1024.0 * (exponent + 15.0) + 1024.0 * (magnitude / np.exp2(exponent) - 1.0)
+    v = np.where(magnitude < 2.0**-14, magnitude * 2.0**24, normal)
+    return np.sign(x) * v
+
+
+def endpoint_to_half_bits_continuous(e: np.ndarray, bits: int, signed: bool) -> np.ndarray:
+    """Continuous version of unquantize + finish for an endpoint used alone (weight 0): the map the
+    partition search inverts. UF16: v = 31/64 * (e * 2^16 + 2^15) / 2^b (paper eq. 7 with a = 31/64)."""
+    e = np.asarray(e, dtype=np.float64)
+    if not signed:
+        return (31.0 / 64.0) * (e * 65536.0 + 32768.0) / 2.0**bits
+    magnitude = (31.0 / 32.0) * (np.abs(e) * 32768.0 + 16384.0) / 2.0 ** (bits - 1)
+    return np.sign(e) * magnitude
+
+
+def half_bits_to_endpoint_continuous(v: np.ndarray, bits: int, signed: bool) -> np.ndarray:
+    """Inverse of `endpoint_to_half_bits_continuous`, clamped to the endpoint range."""
+    v = np.asarray(v, dtype=np.float64)
+    if not signed:
+        e = (v * 64.0 / 31.0 * 2.0**bits - 32768.0) / 65536.0
+        return np.clip(e, 0.0, 2.0**bits - 1.0)
+    magnitude = (np.abs(v) * 32.0 / 31.0 * 2.0 ** (bits - 1) - 16384.0) / 32768.0
+    limit = 2.0 ** (bits - 1) - 1.0
+    return np.sign(v) * np.clip(magnitude, 0.0, limit)
+
+
+# ---------------------------------------------------------------------------------------------
+# Differentiable decode for training (paper eq. 7-9)
+
+
+def _mode_for_regions(regions: int) -> ModeSpec:
+    if regions not in (1, 2):
+        raise ValueError(f"endpoints must have 1 (mode 11) or 2 (mode 10) regions, got {regions}")
+    return MODE_10 if regions == 2 else MODE_11
+
+
+def quantize_endpoints(endpoints: torch.Tensor, bits: int, signed: bool) -> torch.Tensor:
+    """Round continuous endpoints to the integers the encoder stores (ties round up), clamped to the
+    mode's range. Training and export both round through this function."""
+    low, high = _endpoint_range(bits, signed)
+    return torch.floor(endpoints.clamp(low, high) + 0.5)
+
+
+def quantize_weights(weights: torch.Tensor, index_bits: int) -> torch.Tensor:
+    """Round weights in [0, 1] to index values 0 .. 2^q - 1 (as floats)."""
+    top = (1 << index_bits) - 1
+    return torch.floor(weights.clamp(0.0, 1.0) * top + 0.5)
+
+
+def _per_pixel_endpoints(endpoints: torch.Tensor, subset: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+    """endpoints (..., R, 2, 3) -> the two endpoints (..., 16, 3) of every pixel's subset."""
+    if subset is None:
+        first = endpoints[..., 0, 0, :].unsqueeze(-2).expand(*endpoints.shape[:-3], 16, 3)
+        second = endpoints[..., 0, 1, :].unsqueeze(-2).expand(*endpoints.shape[:-3], 16, 3)
+        return first, second
+    flat = endpoints.flatten(-3, -2)  # (..., 2R, 3): subset s has endpoints 2s, 2s + 1
+    gather = (2 * subset).unsqueeze(-1).expand(*subset.shape, 3)
+    return torch.gather(flat, -2, gather), torch.gather(flat, -2, gather + 1)
+
+
+def decode_blocks_differentiable(endpoints: torch.Tensor, weights: torch.Tensor,
+                                 partition: torch.Tensor | None, signed: bool) -> torch.Tensor:
+    """BC6H decode of explicit-endpoint blocks as a differentiable torch function.
+
+    endpoints: (..., R, 2, 3) float, continuous endpoints in the stored integer domain. R = 2 means mode 10
+        (6-bit endpoints: 0..63 UF16, -32..31 SF16; 3-bit indices), R = 1 mode 11 (10-bit; 4-bit indices).
+    weights: (..., 16) float in [0, 1], position of each pixel on its segment (alpha of eq. 6).
+    partition: (...,) int64 in 0..31 for R = 2 (subset 1 = set bits of PARTITION_MASKS), None for R = 1.
+    Returns (..., 16, 3) float32 texel values.
+
+    Forward: rounds endpoints and weights (`quantize_endpoints`, `quantize_weights`) and runs the decoder's
+    integer pipeline, so the result equals, bit for bit, `decode_blocks` of the blocks `encode_mode10/11`
+    writes from the rounded parameters. Backward: straight-through rounding and the continuous
+    unquantize/interpolate/finish of eq. 7-8 (without floors), then the exact slope of eq. 9.
+    """
+    spec = _mode_for_regions(endpoints.shape[-3])
+    bits, q = spec.endpoint_bits, spec.index_bits
+    device = endpoints.device
+    subset = None
+    if spec.regions == 2:
+        if partition is None:
+            raise ValueError("mode 10 (two regions) needs a partition")
+        subset = torch.as_tensor(PARTITION_SUBSETS, device=device)[partition]
+
+    e_round = quantize_endpoints(endpoints, bits, signed)
+    index = quantize_weights(weights, q)
+    e_st = endpoints + (e_round - endpoints).detach()  # straight-through rounding
+    w_st = weights + (index / ((1 << q) - 1) - weights).detach()
+
+    # Exact forward: the decoder's integer pipeline on the rounded parameters.
+    e_int = e_round.detach().to(torch.int64)
+    table = torch.as_tensor(WEIGHTS_3BIT if q == 3 else WEIGHTS_4BIT, device=device)
+    a_int, b_int = _per_pixel_endpoints(unquantize(e_int, bits, signed), subset)
+    c = interpolate(a_int, b_int, table[index.detach().to(torch.int64)].unsqueeze(-1))
+    magnitude_exact = finish_magnitude(c, signed).to(torch.float32)
+
+    # Surrogate for the gradient: eq. 7 (unquantize, the 31/64 or 31/32 finish applied after) and eq. 8.
+    if signed:
+        unq = e_st * 2.0 ** (16 - bits) + torch.sign(e_st.detach()) * 2.0 ** (15 - bits)
+    else:
+        unq = e_st * 2.0 ** (16 - bits) + 2.0 ** (15 - bits)
+    a, b = _per_pixel_endpoints(unq, subset)
+    c_cont = a + (b - a) * w_st.unsqueeze(-1)
+    magnitude_cont = c_cont.abs() * (31.0 / 32.0) if signed else c_cont * (31.0 / 64.0)
+    magnitude = magnitude_exact + (magnitude_cont - magnitude_cont.detach())
+
+    value = half_bits_to_value(magnitude)  # eq. 9, exact at the integer forward value
+    return torch.where(c < 0, -value, value) if signed else value
+
+
+# ---------------------------------------------------------------------------------------------
+# Partition search and block fitting
+
+
+@dataclass(frozen=True)
+class BlockFit:
+    """Continuous block parameters in the stored endpoint domain, ready for training or rounding.
+
+    endpoints: (n, R, 2, 3) float64; weights: (n, 16) float64 in [0, 1]; partition: (n,) int64 (zeros for R = 1);
+    error: (n,) float64 squared error of the chosen fit in the half-bit domain (before rounding).
+    """
+
+    endpoints: np.ndarray
+    weights: np.ndarray
+    partition: np.ndarray
+    error: np.ndarray
+
+
+def _largest_eigenvalue_sym3(s: np.ndarray) -> np.ndarray:
+    """Largest eigenvalue of symmetric 3x3 matrices given as (..., 6) = xx, yy, zz, xy, xz, yz (closed form)."""
+    xx, yy, zz, xy, xz, yz = np.moveaxis(s, -1, 0)
+    mean = (xx + yy + zz) / 3.0
+    off = xy * xy + xz * xz + yz * yz
+    p = np.sqrt(np.maximum(((xx - mean) ** 2 + (yy - mean) ** 2 + (zz - mean) ** 2 + 2.0 * off) / 6.0, 0.0))
+    safe = np.where(p > 1e-12, p, 1.0)
+    bx, by, bz = (xx - mean) / safe, (yy - mean) / safe, (zz - mean) / safe
+    bxy, bxz, byz = xy / safe, xz / safe, yz / safe
+    det = bx * (by * bz - byz * byz) - bxy * (bxy * bz - byz * bxz) + bxz * (bxy * byz - by * bxz)
+    phi = np.arccos(np.clip(det / 2.0, -1.0, 1.0)) / 3.0
+    return np.where(p > 1e-12, mean + 2.0 * p * np.cos(phi), mean)
+
+
+def _principal_axis(scatter: np.ndarray) -> np.ndarray:
+    """Unit eigenvector of the largest eigenvalue of (..., 3, 3) symmetric scatter matrices (LAPACK;
+    power iteration converges too slowly when the two largest eigenvalues are close)."""
+    return np.linalg.eigh(scatter)[1][..., :, -1]
+
+
+def _second_moments(x: np.ndarray) -> np.ndarray:
+    """(..., 3) -> (..., 6) products xx, yy, zz, xy, xz, yz."""
+    return np.stack([x[..., 0] * x[..., 0], x[..., 1] * x[..., 1], x[..., 2] * x[..., 2],
+                     x[..., 0] * x[..., 1], x[..., 0] * x[..., 2], x[..., 1] * x[..., 2]], axis=-1)
+
+
+def _moments(x: np.ndarray, membership: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Count, sum and second moments of the pixels x (n, 16, 3) selected by each 0/1 row of
+    membership (S, 16): shapes (S,), (n, S, 3), (n, S, 6). Batched matmuls, the search's hot spot."""
+    m = membership.astype(np.float64)
+    return m.sum(-1), m @ x, m @ _second_moments(x)
+
+
+def _line_errors(count: np.ndarray, sums: np.ndarray, seconds: np.ndarray) -> np.ndarray:
+    """Least-squares residual of the best line through each pixel set: trace - largest eigenvalue of its scatter."""
+    n = np.maximum(count, 1.0)[..., None]
+    scatter = seconds - _second_moments(sums / n) * n
+    trace = scatter[..., 0] + scatter[..., 1] + scatter[..., 2]
+    return np.maximum(trace - _largest_eigenvalue_sym3(scatter), 0.0)
+
+
+def _fit_lines(x: np.ndarray, subset: np.ndarray, regions: int) -> tuple[np.ndarray, np.ndarray]:
+    """For each block and region, the segment spanning the pixels' projections on their principal axis.
+
+    x: (n, 16, 3) half-bit coordinates; subset: (n, 16). Returns segment ends (n, R, 2, 3) and
+    weights (n, 16) in [0, 1]."""
+    n = len(x)
+    member = (subset[:, None, :] == np.arange(regions)[None, :, None]).astype(np.float64)  # (n, R, 16)
+    count = member.sum(-1, keepdims=True)  # (n, R, 1)
+    mean = (member @ x) / np.maximum(count, 1.0)  # (n, R, 3)
+    centred = x[:, None] - mean[:, :, None]  # (n, R, 16, 3)
+    scatter = np.swapaxes(centred * member[..., None], -1, -2) @ centred  # (n, R, 3, 3)
+    axis = _principal_axis(scatter)  # (n, R, 3)
+    t = (centred @ axis[..., None])[..., 0]  # (n, R, 16)
+    member = member > 0
+    big = np.where(member, t, -np.inf).max(-1)
+    small = np.where(member, t, np.inf).min(-1)
+    small = np.where(np.isfinite(small), small, 0.0)
+    big = np.where(np.isfinite(big), big, 0.0)
+    ends = mean[:, :, None] + np.stack([small, big], -1)[..., None] * axis[:, :, None]  # (n, R, 2, 3)
+    span = np.maximum(big - small, 1e-12)
+    weights_all = (t - small[..., None]) / span[..., None]  # (n, R, 16)
+    weights = np.take_along_axis(weights_all, subset[:, None, :], axis=1)[:, 0]
+    return ends, np.clip(weights, 0.0, 1.0)
+
+
+def fit_blocks(texels: np.ndarray, regions: int, signed: bool, chunk: int = 16384) -> BlockFit:
+    """Fit BC6H explicit-endpoint blocks (mode 10 for regions=2, mode 11 for regions=1) to texels.
+
+    texels: (n, 16, 3) real values (row-major pixels of each 4x4 block). The fit works in the half-bit
+    coordinate where BC6H interpolates linearly (`value_to_half_bits`). For two regions every one of the
+    32 partitions is scored by the least-squares line residual of both subsets (closed-form eigenvalues of
+    the 3x3 scatter matrices) and the lowest wins; each subset's segment then spans its pixels' projections
+    on the principal axis. Measured: 262,144 blocks (a 2048x2048 image) in about 4 s on 2 CPU cores.
+    """
+    texels = np.asarray(texels, dtype=np.float64)
+    if texels.ndim != 3 or texels.shape[1:] != (16, 3):
+        raise ValueError(f"texels must have shape (n, 16, 3), got {texels.shape}")
+    spec = _mode_for_regions(regions)
+    parts = [_fit_chunk(texels[i:i + chunk], spec, signed) for i in range(0, len(texels), chunk)]
+    if not parts:
+        parts = [_fit_chunk(texels, spec, signed)]
+    return BlockFit(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("endpoints", "weights",
+                                                                            "partition", "error")))
+
+
+def _fit_chunk(texels: np.ndarray, spec: ModeSpec, signed: bool) -> BlockFit:
+    coords = value_to_half_bits(texels, signed)
+    offset = coords.mean(axis=1, keepdims=True)
+    x = coords - offset  # centring keeps the second moments well conditioned
+    n = len(x)
+    if spec.regions == 2:
+        total = _moments(x, np.ones(16, dtype=np.int64))
+        count1, sums1, seconds1 = _moments(x, PARTITION_SUBSETS)  # (32,), (n, 32, 3), (n, 32, 6)
+        errors = (_line_errors(count1, sums1, seconds1)
+                  + _line_errors(16.0 - count1, total[1][:, None] - sums1, total[2][:, None] - seconds1))
+        partition = np.argmin(errors, axis=1)
+        subset = PARTITION_SUBSETS[partition]
+    else:
+        partition = np.zeros(n, dtype=np.int64)
+        subset = np.zeros((n, 16), dtype=np.int64)
+    ends, weights = _fit_lines(x, subset, spec.regions)
+    ends = ends + offset[:, None]
+    # Segment ends lie inside the data's range, so clamping to the endpoint range loses nothing for
+    # values the format can hold.
+    endpoints = half_bits_to_endpoint_continuous(ends, spec.endpoint_bits, signed)
+    fitted = ends[np.arange(n)[:, None], subset, 0] + weights[..., None] * (
+        ends[np.arange(n)[:, None], subset, 1] - ends[np.arange(n)[:, None], subset, 0])
+    error = ((fitted - offset - x) ** 2).sum((1, 2))
+    return BlockFit(endpoints, weights, partition.astype(np.int64), error)
+
+
+def encode_texels(texels: np.ndarray, regions: int, signed: bool, chunk: int = 16384) -> np.ndarray:
+    """Compress texels (n, 16, 3) to BC6H blocks (n, 16) uint8 in mode 10 (regions=2) or 11 (regions=1):
+    `fit_blocks`, round the endpoints (to nearest, and outward; each block keeps the better), and give every
+    pixel the exact palette entry nearest to it."""
+    texels = np.asarray(texels, dtype=np.float64)
+    spec = _mode_for_regions(regions)
+    out = np.zeros((len(texels), BLOCK_BYTES), dtype=np.uint8)
+    for i in range(0, len(texels), chunk):
+        part = texels[i:i + chunk]
+        fit = fit_blocks(part, regions, signed, chunk)
+        # Two roundings of the fitted endpoints; each block keeps the one whose exact palette fits it best.
+        nearest = quantize_endpoints(torch.from_numpy(fit.endpoints), spec.endpoint_bits, signed)
+        candidates = [nearest.numpy().astype(np.int64),
+                      _round_endpoints_outward(fit.endpoints, spec.endpoint_bits, signed)]
+        results = [_nearest_palette_index(part, e, fit.partition, spec, signed) for e in candidates]
+        outward = results[1][1] < results[0][1]
+        endpoints = np.where(outward[:, None, None, None], candidates[1], candidates[0])
+        index = np.where(outward[:, None], results[1][0], results[0][0])
+        if regions == 2:
+            out[i:i + chunk] = encode_mode10(endpoints, index, fit.partition, signed)
+        else:
+            out[i:i + chunk] = encode_mode11(endpoints[:, 0], index, signed)
+    return out
+
+
+def _round_endpoints_outward(endpoints: np.ndarray, bits: int, signed: bool) -> np.ndarray:
+    """Round each segment's endpoints (..., 2, 3) apart, per channel: the lower one down, the higher one up.
+
+    Rounding to nearest can collapse a short segment (a flat block) onto one stored value; rounding outward
+    keeps the segment's span inside the palette so the per-pixel index choice can land between."""
+    low, high = _endpoint_range(bits, signed)
+    first, second = endpoints[..., 0, :], endpoints[..., 1, :]
+    ascending = first <= second
+    lower, upper = np.minimum(first, second), np.maximum(first, second)
+    lower, upper = np.floor(lower), np.ceil(upper)
+    rounded = np.stack([np.where(ascending, lower, upper), np.where(ascending, upper, lower)], axis=-2)
+    return np.clip(rounded, low, high).astype(np.int64)
+
+
+def _nearest_palette_index(texels: np.ndarray, endpoints: np.ndarray, partition: np.ndarray,
+                           spec: ModeSpec, signed: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Index (n, 16) of the exact decoded palette entry closest to each texel in the half-bit domain, and
+    each block's resulting squared error (n,) in that domain."""
+    n = len(texels)
+    table = WEIGHTS_3BIT if spec.index_bits == 3 else WEIGHTS_4BIT
+    unq = unquantize(endpoints, spec.endpoint_bits, signed)  # (n, R, 2, 3)
+    c = interpolate(unq[:, :, :1], unq[:, :, 1:], table[None, None, :, None])  # (n, R, K, 3)
+    palette = (finish_magnitude(c, signed) * np.where(c < 0, -1, 1)).astype(np.float32)
+    subset = PARTITION_SUBSETS[partition] if spec.regions == 2 else np.zeros((n, 16), dtype=np.int64)
+    per_pixel = palette[np.arange(n)[:, None], subset]  # (n, 16, K, 3)
+    target = value_to_half_bits(texels, signed).astype(np.float32)[:, :, None]
+    distance = ((per_pixel - target) ** 2).sum(-1)  # (n, 16, K)
+    index = np.argmin(distance, axis=-1)
+    return index, np.take_along_axis(distance, index[..., None], -1)[..., 0].sum(-1)
+
+
+def encode_image(image: np.ndarray, regions: int = 2, signed: bool = False) -> np.ndarray:
+    """Compress an (h, w, 3) float image to blocks (ceil(h/4), ceil(w/4), 16) uint8 (mode 10 or 11)."""
+    texels = image_to_block_texels(np.asarray(image, dtype=np.float64))
+    bh, bw = texels.shape[:2]
+    return encode_texels(texels.reshape(-1, 16, 3), regions, signed).reshape(bh, bw, BLOCK_BYTES)

@@ -1,0 +1,1 @@
+"""bcf.jobs: job queue and workers (see the issues tracker; not implemented yet)."""

@@ -1,0 +1,1 @@
+"""bcf.service: HTTP API (see the issues tracker; not implemented yet)."""
