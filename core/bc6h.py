@@ -27,7 +27,6 @@ import torch
 
 BLOCK_BYTES = 16
 BLOCK_TEXELS = 16
-UF16_MAX_BITS = 0x7BFF  # largest finite half: the unsigned decoder never exceeds it
 
 WEIGHTS_3BIT = np.array([0, 9, 18, 27, 37, 46, 55, 64], dtype=np.int64)
 WEIGHTS_4BIT = np.array([0, 4, 9, 13, 17, 21, 26, 30, 34, 38, 43, 47, 51, 55, 60, 64], dtype=np.int64)
@@ -466,18 +465,10 @@ def value_to_half_bits(x: np.ndarray, signed: bool) -> np.ndarray:
     return np.sign(x) * v
 
 
-def endpoint_to_half_bits_continuous(e: np.ndarray, bits: int, signed: bool) -> np.ndarray:
-    """Continuous version of unquantize + finish for an endpoint used alone (weight 0): the map the
-    partition search inverts. UF16: v = 31/64 * (e * 2^16 + 2^15) / 2^b (paper eq. 7 with a = 31/64)."""
-    e = np.asarray(e, dtype=np.float64)
-    if not signed:
-        return (31.0 / 64.0) * (e * 65536.0 + 32768.0) / 2.0**bits
-    magnitude = (31.0 / 32.0) * (np.abs(e) * 32768.0 + 16384.0) / 2.0 ** (bits - 1)
-    return np.sign(e) * magnitude
-
-
 def half_bits_to_endpoint_continuous(v: np.ndarray, bits: int, signed: bool) -> np.ndarray:
-    """Inverse of `endpoint_to_half_bits_continuous`, clamped to the endpoint range."""
+    """Continuous endpoint (clamped to the endpoint range) whose unquantize + finish, used alone (weight 0),
+    gives half-bit coordinate v: the inverse of eq. 7 with the finish applied, i.e. of
+    UF16 v = 31/64 * (e * 2^16 + 2^15) / 2^b and SF16 |v| = 31/32 * (|e| * 2^15 + 2^14) / 2^(b-1)."""
     v = np.asarray(v, dtype=np.float64)
     if not signed:
         e = (v * 64.0 / 31.0 * 2.0**bits - 32768.0) / 65536.0
@@ -635,7 +626,6 @@ def _fit_lines(x: np.ndarray, subset: np.ndarray, regions: int) -> tuple[np.ndar
 
     x: (n, 16, 3) half-bit coordinates; subset: (n, 16). Returns segment ends (n, R, 2, 3) and
     weights (n, 16) in [0, 1]."""
-    n = len(x)
     member = (subset[:, None, :] == np.arange(regions)[None, :, None]).astype(np.float64)  # (n, R, 16)
     count = member.sum(-1, keepdims=True)  # (n, R, 1)
     mean = (member @ x) / np.maximum(count, 1.0)  # (n, R, 3)
@@ -653,6 +643,13 @@ def _fit_lines(x: np.ndarray, subset: np.ndarray, regions: int) -> tuple[np.ndar
     weights_all = (t - small[..., None]) / span[..., None]  # (n, R, 16)
     weights = np.take_along_axis(weights_all, subset[:, None, :], axis=1)[:, 0]
     return ends, np.clip(weights, 0.0, 1.0)
+
+
+def points_on_segments(ends: np.ndarray, weights: np.ndarray, subset: np.ndarray) -> np.ndarray:
+    """Each pixel's point on its subset's segment: ends (n, R, 2, 3), weights and subset (n, 16) -> (n, 16, 3)."""
+    rows = np.arange(len(ends))[:, None]
+    first, second = ends[rows, subset, 0], ends[rows, subset, 1]
+    return first + weights[..., None] * (second - first)
 
 
 def fit_blocks(texels: np.ndarray, regions: int, signed: bool, chunk: int = 16384) -> BlockFit:
@@ -695,9 +692,7 @@ def _fit_chunk(texels: np.ndarray, spec: ModeSpec, signed: bool) -> BlockFit:
     # Segment ends lie inside the data's range, so clamping to the endpoint range loses nothing for
     # values the format can hold.
     endpoints = half_bits_to_endpoint_continuous(ends, spec.endpoint_bits, signed)
-    fitted = ends[np.arange(n)[:, None], subset, 0] + weights[..., None] * (
-        ends[np.arange(n)[:, None], subset, 1] - ends[np.arange(n)[:, None], subset, 0])
-    error = ((fitted - offset - x) ** 2).sum((1, 2))
+    error = ((points_on_segments(ends, weights, subset) - coords) ** 2).sum((1, 2))
     return BlockFit(endpoints, weights, partition.astype(np.int64), error)
 
 
