@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Iterator, NoReturn, Optional, Sequence
 
 from bcf import __version__
+from bcf import material_cli
 from bcf.core import containers, images
 
 if TYPE_CHECKING:
@@ -69,11 +70,12 @@ def _non_negative_int(text: str) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     """The full `bcf` argument parser; each leaf command stores its handler in `handler`."""
-    epilog = "commands:\n" + "\n".join(f"  bc6h {name:<8} {text}" for name, text in COMMANDS.items())
-    parser = _Parser(prog="bcf", description="Neural block-compressed features: BC6H texture tools.",
+    epilog = "bc6h commands:\n" + "\n".join(f"  bc6h {name:<8} {text}" for name, text in COMMANDS.items())
+    parser = _Parser(prog="bcf", description="Neural block-compressed features (BC6H) for PBR materials.",
                      epilog=epilog, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version=f"bcf {__version__}")
-    groups = parser.add_subparsers(title="command groups", metavar="GROUP", dest="group", required=True)
+    groups = parser.add_subparsers(title="commands", metavar="COMMAND", dest="group", required=True)
+    material_cli.add_commands(groups, UserError, _positive_int, _non_negative_int)
     bc6h = groups.add_parser("bc6h", help="BC6H textures: encode, decode, info",
                              description="BC6H (HDR, 3 channels, 8 bits per texel) textures in DDS or KTX2.")
     commands = bc6h.add_subparsers(title="commands", metavar="COMMAND", dest="command", required=True)

@@ -14,7 +14,7 @@ from typing import Literal, Union
 import numpy as np
 import OpenImageIO as oiio
 
-__all__ = ["ImageReadError", "ImageWriteError", "WRITE_EXTENSIONS", "mip_chain", "read_rgb", "write_rgb"]
+__all__ = ["ImageReadError", "ImageWriteError", "WRITE_EXTENSIONS", "mip_chain", "read_image", "read_rgb", "write_rgb"]
 
 StrPath = Union[str, PathLike]
 
@@ -33,11 +33,11 @@ class ImageWriteError(ValueError):
 # ------------------------------------------------------------------------------------------------ read
 
 
-def read_rgb(path: StrPath) -> np.ndarray:
-    """Read the first subimage of `path` as (h, w, 3) float32.
+def read_image(path: StrPath) -> np.ndarray:
+    """Read the first subimage of `path` as (h, w, c) float32 with every stored channel, in file order.
 
-    1 channel is replicated to RGB (grey), 2 channels get a zero blue, 4+ channels keep the first three.
-    Raises ImageReadError for a missing, unreadable, truncated or corrupt file.
+    Alpha is returned unassociated (as stored), never premultiplied. Raises ImageReadError for a missing,
+    unreadable, truncated or corrupt file.
     """
     file = Path(path)
     if not file.exists():
@@ -61,7 +61,16 @@ def read_rgb(path: StrPath) -> np.ndarray:
         image_input.close()
     if pixels is None or problem:
         raise ImageReadError(f"{path}: cannot read image: {problem or 'unknown OpenImageIO error'}")
-    return _to_rgb(np.asarray(pixels, dtype=np.float32).reshape(*pixels.shape[:2], channels))
+    return np.asarray(pixels, dtype=np.float32).reshape(*pixels.shape[:2], channels)
+
+
+def read_rgb(path: StrPath) -> np.ndarray:
+    """Read the first subimage of `path` as (h, w, 3) float32.
+
+    1 channel is replicated to RGB (grey), 2 channels get a zero blue, 4+ channels keep the first three.
+    Raises ImageReadError for a missing, unreadable, truncated or corrupt file.
+    """
+    return _to_rgb(read_image(path))
 
 
 def _to_rgb(pixels: np.ndarray) -> np.ndarray:

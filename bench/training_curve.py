@@ -1,0 +1,77 @@
+"""Quality vs wall time of the two-phase fit on one material (docs/BENCHMARKS.md).
+
+Trains with a preset (iteration counts overridable) and, every --eval-every iterations, evaluates the
+current model exactly as the report does for exported files (texel centres of every mip, PSNR of the mean
+MSE over mips, outputs clamped to [0, 1]). Phase-2 models decode their block features bit-exactly, so
+the numbers equal those of the exported files up to the fp16 rounding of the weights. Evaluation time is
+excluded from the wall-clock column.
+
+    .venv/bin/python bench/training_curve.py ../shared/materials/wood_peeling_paint_weathered \
+        --preset default --phase2-iterations 10000 --eval-every 1000 -o bench/results/curve_wood.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+from bcf.core import material, metrics, report, training
+from bcf.core.options import CompressOptions, resolve_options
+from bcf.core.sampling import ReferenceMaterial
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("material", type=Path)
+    parser.add_argument("--preset", default="default")
+    parser.add_argument("--features", default="1k")
+    parser.add_argument("--phase1-iterations", type=int)
+    parser.add_argument("--phase2-iterations", type=int)
+    parser.add_argument("--block-mode", type=int, choices=(10, 11))
+    parser.add_argument("--batch-size", type=int)
+    parser.add_argument("--eval-every", type=int, default=1000)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("-o", "--output", type=Path)
+    args = parser.parse_args()
+
+    texture_set = material.load_material(args.material)
+    overrides = {k: v for k, v in {"phase1_iterations": args.phase1_iterations,
+                                   "phase2_iterations": args.phase2_iterations, "block_mode": args.block_mode,
+                                   "batch_size": args.batch_size}.items() if v is not None}
+    options = resolve_options(CompressOptions(preset=args.preset, features=args.features, device=args.device,
+                                              **overrides))
+    reference = ReferenceMaterial(texture_set.channels, options.address)
+    sizes = [(m.shape[2], m.shape[1]) for m in reference.mips]
+    points: list[dict] = []
+    start = time.perf_counter()
+    evaluation_s = 0.0
+
+    def checkpoint(phase: int, iteration: int, model: training.NeuralMaterial) -> None:
+        nonlocal evaluation_s
+        t0 = time.perf_counter()
+        wall = t0 - start - evaluation_s
+        model_cpu = model if args.device == "cpu" else model.to("cpu")
+        summary = report.summarise(metrics.evaluate(model_cpu.eval(), reference), sizes)
+        if args.device != "cpu":
+            model.to(args.device)
+        model.train()
+        point = {"phase": phase, "iteration": iteration, "wall_s": round(wall, 2),
+                 "psnr_all": round(summary.aggregate.psnr.all, 3), "ssim_all": round(summary.aggregate.ssim.all, 4),
+                 "psnr": summary.aggregate.psnr.model_dump()}
+        points.append(point)
+        print(json.dumps(point), flush=True)
+        evaluation_s += time.perf_counter() - t0
+
+    result = training.fit(texture_set, options, checkpoint=checkpoint, checkpoint_every=args.eval_every)
+    out = {"material": texture_set.source.name, "size": [texture_set.width, texture_set.height],
+           "options": options.model_dump(), "phase1_s": result.phase1_s, "phase2_s": result.phase2_s,
+           "evaluation_s": evaluation_s, "points": points}
+    if args.output:
+        args.output.parent.mkdir(parents=True, exist_ok=True)
+        args.output.write_text(json.dumps(out, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,228 @@
+"""`bcf compress`, `bcf decode`, `bcf info`: the neural-material commands (thin layer over bcf.core).
+
+Domain errors from the library (bad material files, a corrupt export folder, an output that exists) are
+turned into UserError, so they print as one `bcf: error: ...` line with exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import sys
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Callable, TextIO
+
+from bcf.core import material as material_io
+
+if TYPE_CHECKING:
+    from bcf.core.training import TrainingProgress
+
+COMMANDS = {
+    "compress": "compress a PBR material (albedo, normal, ARM) into BC6H neural features + decoder weights",
+    "decode": "reconstruct albedo / normal / ARM images from a compressed material folder",
+    "info": "describe a compressed material folder (sizes, textures, decoder, quality)",
+}
+ROLE_OPTIONS = ("albedo", "normal", "arm", "ao", "roughness", "metalness")
+SCHEDULE_OPTIONS = ("phase1_iterations", "phase2_iterations", "batch_size", "hidden", "block_mode")
+
+
+def add_commands(commands: argparse._SubParsersAction, user_error: type[Exception],
+                 positive_int: Callable[[str], int], non_negative_int: Callable[[str], int]) -> None:
+    """Register the three commands on the top-level sub-parser."""
+    guard = functools.partial(_guarded, user_error=user_error)
+
+    p = commands.add_parser("compress", help=COMMANDS["compress"], description=COMMANDS["compress"] + ".",
+                            epilog="Roles given explicitly override those found in MATERIAL_DIR. Missing AO is 1, "
+                                   "missing metalness 0.")
+    p.add_argument("material", metavar="MATERIAL_DIR", nargs="?",
+                   help="folder with the material's textures, found by common naming (Poly Haven, ambientCG, ...)")
+    p.add_argument("-o", "--output", metavar="OUT", required=True, help="output folder (created)")
+    files = p.add_argument_group("texture files (instead of, or overriding, MATERIAL_DIR)")
+    for role in ROLE_OPTIONS:
+        files.add_argument(f"--{role}", metavar="FILE", type=Path)
+    files.add_argument("--normal-convention", choices=("opengl", "directx"),
+                       help="green channel convention of the normal map (default: from the file name, else opengl)")
+    training = p.add_argument_group("training")
+    training.add_argument("--preset", choices=("fast", "default", "paper"), default="default",
+                          help="training schedule (default: default; fast for previews, paper = the paper's 205k "
+                               "iterations)")
+    training.add_argument("--features", choices=("0.5k", "1k", "2k"), default="1k",
+                          help="T0 at 1/4, 1/2 or 1x the material width (default: 1k)")
+    training.add_argument("--address", choices=("wrap", "clamp"), default="wrap",
+                          help="texture addressing: wrap for tiling materials (default), clamp for UV atlases")
+    training.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
+    training.add_argument("--seed", type=non_negative_int, default=0, help="random seed (default: 0)")
+    training.add_argument("--hidden", type=int, choices=(16, 32), help="MLP hidden width (default: the preset's)")
+    training.add_argument("--block-mode", type=int, choices=(10, 11),
+                          help="BC6H mode of the feature blocks (default: the preset's)")
+    training.add_argument("--phase1-iterations", type=non_negative_int, metavar="N")
+    training.add_argument("--phase2-iterations", type=non_negative_int, metavar="N")
+    training.add_argument("--batch-size", type=positive_int, metavar="N", help="samples per iteration")
+    p.add_argument("--force", action="store_true", help="replace OUT if it exists and is not empty")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress display")
+    p.set_defaults(handler=functools.partial(guard, handler=_compress))
+
+    p = commands.add_parser("decode", help=COMMANDS["decode"], description=COMMANDS["decode"] + ".",
+                            epilog="Writes albedo.png, normal.png, arm.png for mip 0 and albedo_mip<N>.png etc. "
+                                   "for mip N (.exr with --format exr).")
+    p.add_argument("folder", metavar="OUT", help="a folder written by 'bcf compress'")
+    p.add_argument("-o", "--output", metavar="DIR", required=True, help="folder for the images (created)")
+    which = p.add_mutually_exclusive_group()
+    which.add_argument("--mip", type=non_negative_int, default=0, metavar="N", help="mip level (default: 0)")
+    which.add_argument("--all-mips", action="store_true", help="every mip level")
+    p.add_argument("--format", choices=("png", "exr"), default="png", help="image format (default: png)")
+    p.add_argument("--bits", type=int, choices=(8, 16), default=8, help="PNG bits per channel (default: 8)")
+    p.set_defaults(handler=functools.partial(guard, handler=_decode))
+
+    p = commands.add_parser("info", help=COMMANDS["info"], description=COMMANDS["info"] + ".")
+    p.add_argument("folder", metavar="OUT", help="a folder written by 'bcf compress'")
+    p.set_defaults(handler=functools.partial(guard, handler=_info))
+
+
+def _guarded(args: argparse.Namespace, handler: Callable[[argparse.Namespace], int],
+             user_error: type[Exception]) -> int:
+    from bcf.core import compress, export  # torch: only when a command runs
+
+    try:
+        return handler(args)
+    except (material_io.MaterialError, export.ExportError, compress.OutputExistsError) as exc:
+        raise user_error(str(exc)) from None
+
+
+def _say(message: str = "") -> None:
+    print(message, flush=True)
+
+
+# --------------------------------------------------------------------------------------------- progress
+
+
+class ProgressDisplay:
+    """One-line progress bar on a terminal (redrawn in place), or a line every 10 s when not a terminal."""
+
+    def __init__(self, stream: TextIO = sys.stderr, width: int = 28):
+        self.stream = stream
+        self.tty = stream.isatty()
+        self.width = width
+        self.last_line = 0.0
+        self.open = False
+
+    def __call__(self, p: "TrainingProgress") -> None:
+        done = p.iteration / max(p.total, 1)
+        filled = int(done * self.width)
+        bar = "#" * filled + "." * (self.width - filled)
+        text = (f"phase {p.phase}/2 [{bar}] {p.iteration}/{p.total}  {p.psnr:5.2f} dB  "
+                f"{p.iterations_per_s:6.1f} it/s  ETA {_duration(p.eta_s)}")
+        if self.tty:
+            self.stream.write("\r" + text + "\x1b[K")
+            self.open = p.iteration < p.total
+            if not self.open:
+                self.stream.write("\n")
+            self.stream.flush()
+        elif time.monotonic() - self.last_line >= 10.0 or p.iteration == p.total:
+            self.stream.write(text + "\n")
+            self.stream.flush()
+            self.last_line = time.monotonic()
+
+    def close(self) -> None:
+        if self.open:
+            self.stream.write("\n")
+            self.stream.flush()
+            self.open = False
+
+
+def _duration(seconds: float) -> str:
+    seconds = int(round(seconds))
+    return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
+
+
+# --------------------------------------------------------------------------------------------- commands
+
+
+def _explicit_files(args: argparse.Namespace) -> material_io.MaterialFiles:
+    roles = {role: getattr(args, role) for role in ROLE_OPTIONS if getattr(args, role) is not None}
+    return material_io.MaterialFiles(**roles, normal_convention=args.normal_convention)
+
+
+def _describe(texture_set: material_io.TextureSet) -> list[str]:
+    source = texture_set.source
+    lines = [f"material {source.name}: {source.width}x{source.height}, normal convention "
+             f"{source.normal_convention}, ARM {'packed' if source.arm_packed else 'from separate maps'}"]
+    for f in source.files:
+        lines.append(f"  {f.role:<10} {f.name} ({f.width}x{f.height}, {f.channels} ch, {f.format} {f.bits})")
+    for role, value in source.defaults.items():
+        lines.append(f"  {role:<10} (none: constant {value:g})")
+    return lines
+
+
+def _compress(args: argparse.Namespace) -> int:
+    from bcf.core import compress, report
+    from bcf.core.options import CompressOptions, resolve_options
+
+    if args.material is None and args.albedo is None:
+        raise material_io.MaterialError("give a MATERIAL_DIR or the texture files (--albedo, --normal, --arm ...)")
+    output = Path(args.output)
+    compress.check_output(output, args.force)
+    texture_set = material_io.load_material(Path(args.material) if args.material else None, _explicit_files(args))
+    for line in _describe(texture_set):
+        _say(line)
+    for note in texture_set.notes:
+        _say(f"  note: {note}")
+    overrides = {k: getattr(args, k) for k in SCHEDULE_OPTIONS if getattr(args, k) is not None}
+    options = CompressOptions(preset=args.preset, features=args.features, address=args.address,
+                              device=args.device, seed=args.seed, **overrides)
+    resolved = resolve_options(options)
+    _say(f"training: preset {resolved.preset}, features {resolved.features}, BC6H mode {resolved.block_mode}, "
+         f"MLP 12-{resolved.hidden}-8, {resolved.phase1_iterations} + {resolved.phase2_iterations} iterations "
+         f"of {resolved.batch_size} samples on {resolved.device}")
+    display = None if args.quiet else ProgressDisplay()
+    try:
+        result = compress.compress_material(texture_set, resolved, output, progress=display, overwrite=args.force)
+    except KeyboardInterrupt:
+        if display:
+            display.close()
+        print(f"bcf: interrupted; nothing written to {output}", file=sys.stderr)
+        raise SystemExit(130) from None
+    finally:
+        if display:
+            display.close()
+    _say(report.format_report(result, f"wrote {output} (report.json):"))
+    return 0
+
+
+def _decode(args: argparse.Namespace) -> int:
+    from bcf.core import compress, export
+
+    folder = Path(args.folder)
+    manifest = export.read_manifest(folder)
+    mips = list(range(manifest.mips)) if args.all_mips else [args.mip]
+    extension = ".exr" if args.format == "exr" else ".png"
+    compress.decode_export(folder, Path(args.output), mips, extension, args.bits,
+                           on_file=lambda path: _say(f"wrote {path}"))
+    return 0
+
+
+def _info(args: argparse.Namespace) -> int:
+    from bcf.core import compress, export, report
+
+    folder = Path(args.folder)
+    m = export.read_manifest(folder)
+    lines = [f"folder:    {folder}", f"format:    {m.format} v{m.format_version} ({m.generator})",
+             f"material:  {m.material.name}, {m.width}x{m.height}, {m.mips} mips, {m.address} addressing, "
+             f"normal {m.material.normal_convention}",
+             f"training:  preset {m.options.preset}, features {m.options.features}, BC6H mode {m.options.block_mode}, "
+             f"{m.options.phase1_iterations} + {m.options.phase2_iterations} iterations, seed {m.options.seed}",
+             "features:"]
+    for t in m.feature_textures:
+        lines.append(f"  {t.file}: {t.format} {t.width}x{t.height}, {t.mips} mips, LOD bias {t.lod_bias:+g}, "
+                     f"{t.bytes:,} bytes, MLP inputs {t.mlp_inputs[0]}-{t.mlp_inputs[-1]}")
+    shape = "-".join([str(m.decoder.layers[0].inputs)] + [str(l.outputs) for l in m.decoder.layers])
+    lines.append(f"decoder:   {m.decoder.file}: MLP {shape} ({', '.join(l.activation for l in m.decoder.layers)}), "
+                 f"{m.decoder.dtype}, {m.decoder.bytes} bytes")
+    lines.append("outputs:   " + "; ".join(f"{o.name} = outputs {o.channels[0]}-{o.channels[-1]}" for o in m.outputs))
+    if (folder / compress.REPORT_FILE).is_file():
+        lines += ["", report.format_report(compress.read_report(folder), "quality (report.json):")]
+    else:
+        lines.append("no report.json")
+    _say("\n".join(lines))
+    return 0

@@ -1,0 +1,108 @@
+"""Compression options: one pydantic model shared by the CLI, the job queue and the HTTP API.
+
+`CompressOptions` is what a user states (a preset plus optional overrides); `resolve_options` turns it into
+`ResolvedOptions`, where every value is concrete. The resolved options are what training uses and what the
+manifest and report record, so a result always says exactly how it was made.
+"""
+
+from __future__ import annotations
+
+from typing import Literal, Optional
+
+from pydantic import BaseModel, ConfigDict, Field
+
+__all__ = ["PRESETS", "CompressOptions", "ResolvedOptions", "TrainingSchedule", "FEATURE_SCALES",
+           "resolve_options"]
+
+Preset = Literal["fast", "default", "paper"]
+FeatureSize = Literal["0.5k", "1k", "2k"]
+
+# T0's width as a fraction of the material's width; named after the paper's Table 1 for a 2K material.
+FEATURE_SCALES: dict[str, float] = {"0.5k": 0.25, "1k": 0.5, "2k": 1.0}
+
+
+class TrainingSchedule(BaseModel):
+    """Everything a preset fixes. Learning rates decay exponentially per iteration: lr_t = lr * decay^t."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    phase1_iterations: int = Field(ge=0, description="iterations with unconstrained features (paper: 5k)")
+    phase2_iterations: int = Field(ge=0, description="iterations with BC6H block features (paper: 200k)")
+    batch_size: int = Field(ge=256, description="random (u, v) samples per iteration (paper: 512x512)")
+    lr_features_phase1: float = Field(gt=0, description="paper: 5e-2")
+    lr_mlp_phase1: float = Field(gt=0, description="paper: 1e-3")
+    decay_phase1: float = Field(gt=0, le=1, description="paper: 0.9995")
+    lr_features_phase2: float = Field(gt=0, description="paper: 1e-2")
+    lr_mlp_phase2: float = Field(gt=0, description="paper: 1e-3")
+    decay_phase2: float = Field(gt=0, le=1, description="paper: 0.99999")
+    hidden: Literal[16, 32] = Field(description="MLP hidden width (paper: 16 or 32)")
+    block_mode: Literal[10, 11] = Field(
+        description="BC6H mode of the feature blocks: 10 = two regions, 6-bit endpoints, 3-bit indices "
+                    "(the paper's); 11 = one region, 10-bit endpoints, 4-bit indices")
+
+
+def _decay(final_ratio: float, iterations: int) -> float:
+    """Per-iteration decay that brings the learning rate to final_ratio of its start after `iterations`."""
+    return final_ratio ** (1.0 / max(iterations, 1))
+
+
+# The paper's decays end phase 1 at 0.9995^5000 = 8.2 % and phase 2 at 0.99999^200000 = 13.5 % of the
+# starting rate; the shorter presets keep those end points so their schedules have the same shape.
+PRESETS: dict[str, TrainingSchedule] = {
+    "paper": TrainingSchedule(
+        phase1_iterations=5000, phase2_iterations=200_000, batch_size=512 * 512,
+        lr_features_phase1=5e-2, lr_mlp_phase1=1e-3, decay_phase1=0.9995,
+        lr_features_phase2=1e-2, lr_mlp_phase2=1e-3, decay_phase2=0.99999,
+        hidden=16, block_mode=10),
+    "default": TrainingSchedule(
+        phase1_iterations=2000, phase2_iterations=8000, batch_size=1 << 16,
+        lr_features_phase1=5e-2, lr_mlp_phase1=1e-3, decay_phase1=_decay(0.082, 2000),
+        lr_features_phase2=1e-2, lr_mlp_phase2=1e-3, decay_phase2=_decay(0.135, 8000),
+        hidden=16, block_mode=10),
+    "fast": TrainingSchedule(
+        phase1_iterations=300, phase2_iterations=300, batch_size=1 << 14,
+        lr_features_phase1=5e-2, lr_mlp_phase1=5e-3, decay_phase1=_decay(0.082, 300),
+        lr_features_phase2=1e-2, lr_mlp_phase2=2e-3, decay_phase2=_decay(0.135, 300),
+        hidden=16, block_mode=10),
+}
+
+
+class CompressOptions(BaseModel):
+    """What the user asks for. Unset schedule fields take the preset's value (`resolve_options`)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    preset: Preset = Field("default", description="training schedule: fast (tests, demo), default, paper")
+    features: FeatureSize = Field("1k", description="T0 at W/4 (0.5k), W/2 (1k) or W (2k)")
+    address: Literal["wrap", "clamp"] = Field("wrap", description="texture addressing: wrap for tiling "
+                                              "materials, clamp for UV atlases")
+    device: Literal["cpu", "cuda"] = "cpu"
+    seed: int = Field(0, ge=0)
+    phase1_iterations: Optional[int] = Field(None, ge=0)
+    phase2_iterations: Optional[int] = Field(None, ge=0)
+    batch_size: Optional[int] = Field(None, ge=256)
+    lr_features_phase1: Optional[float] = Field(None, gt=0)
+    lr_mlp_phase1: Optional[float] = Field(None, gt=0)
+    decay_phase1: Optional[float] = Field(None, gt=0, le=1)
+    lr_features_phase2: Optional[float] = Field(None, gt=0)
+    lr_mlp_phase2: Optional[float] = Field(None, gt=0)
+    decay_phase2: Optional[float] = Field(None, gt=0, le=1)
+    hidden: Optional[Literal[16, 32]] = None
+    block_mode: Optional[Literal[10, 11]] = None
+
+
+class ResolvedOptions(TrainingSchedule):
+    """Every option with its concrete value: the preset's schedule with the user's overrides applied."""
+
+    preset: Preset
+    features: FeatureSize
+    address: Literal["wrap", "clamp"]
+    device: Literal["cpu", "cuda"]
+    seed: int
+
+
+def resolve_options(options: CompressOptions) -> ResolvedOptions:
+    """Apply `options`' overrides to its preset's schedule."""
+    values = PRESETS[options.preset].model_dump()
+    values.update({k: v for k, v in options.model_dump().items() if v is not None})
+    return ResolvedOptions(**values)

@@ -1,0 +1,145 @@
+"""report.json: the quality, size and timing of one compressed material, and its terminal table.
+
+Every score comes from decoding the exported files (`export.load_export`), except the `models` entries,
+which evaluate the training-time models to show what export costs (paper Fig. 8).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Optional
+
+from pydantic import BaseModel, ConfigDict
+
+from bcf.core.material import MaterialSource
+from bcf.core.metrics import MipScores, psnr_from_mse
+from bcf.core.options import ResolvedOptions
+
+__all__ = ["Aggregate", "Evaluation", "MipMetrics", "Report", "SizeReport", "TextureScores", "TimingReport",
+           "bc1_bc5_bytes", "format_report", "summarise"]
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class TextureScores(_Model):
+    albedo: float
+    normal: float
+    arm: float
+    all: float
+
+
+class MipMetrics(_Model):
+    mip: int
+    width: int
+    height: int
+    psnr: TextureScores
+    ssim: TextureScores
+    mse: TextureScores
+
+
+class Aggregate(_Model):
+    """psnr: of the mean MSE over mips; ssim: mean over mips."""
+
+    psnr: TextureScores
+    ssim: TextureScores
+
+
+class Evaluation(_Model):
+    aggregate: Aggregate
+    per_mip: list[MipMetrics]
+
+
+class SizeReport(_Model):
+    total_bytes: int  # features + weights: what a renderer keeps in memory
+    features_bytes: int  # BC6H blocks of all mips of the four feature textures
+    weights_bytes: int  # decoder.bin
+    files_bytes: int  # everything in the output folder on disk (headers, manifest, report included)
+    bits_per_texel: float  # total_bytes * 8 / (material width * height)
+    bc1_bc5_bytes: int  # BC1 albedo + BC1 ARM + BC5 normal with full mip chains, at the material's size
+
+
+class TimingReport(_Model):
+    phase1_s: float
+    transition_s: float
+    phase2_s: float
+    export_s: float
+    evaluation_s: float
+    total_s: float
+
+
+class HistoryEntry(_Model):
+    phase: int
+    iteration: int
+    elapsed_s: float
+    psnr: float  # running training PSNR (random batches), dB
+
+
+class Report(_Model):
+    generator: str
+    created_at: str
+    device: str
+    material: MaterialSource
+    options: ResolvedOptions
+    aggregate: Aggregate  # exported files, texel centres of every mip
+    per_mip: list[MipMetrics]
+    jittered: Evaluation  # exported files, 1 random sample per pixel against the filtered reference (§6.2)
+    models: dict[str, Aggregate]  # exported / trained_fp32 / phase1_unconstrained
+    mean_baseline: Aggregate  # the per-channel mean everywhere: the floor any decoder must clear
+    size: SizeReport
+    timing: TimingReport
+    history: list[HistoryEntry]
+
+
+def _scores(values: dict[str, float]) -> TextureScores:
+    return TextureScores(**values)
+
+
+def summarise(mips: list[MipScores], sizes: list[tuple[int, int]]) -> Evaluation:
+    """Per-mip scores -> per-mip entries and the paper's aggregate (PSNR of the mean MSE; mean SSIM)."""
+    per_mip = [MipMetrics(mip=i, width=w, height=h, psnr=_scores(m["psnr"]), ssim=_scores(m["ssim"]),
+                          mse=_scores(m["mse"])) for i, (m, (w, h)) in enumerate(zip(mips, sizes))]
+    names = list(TextureScores.model_fields)
+    psnr = {n: psnr_from_mse(sum(m["mse"][n] for m in mips) / len(mips)) for n in names}
+    ssim = {n: sum(m["ssim"][n] for m in mips) / len(mips) for n in names}
+    return Evaluation(aggregate=Aggregate(psnr=_scores(psnr), ssim=_scores(ssim)), per_mip=per_mip)
+
+
+def bc1_bc5_bytes(width: int, height: int) -> int:
+    """Bytes of the usual BC textures for the material: BC1 (8 bytes / block) albedo and ARM plus BC5
+    (16 bytes / block) normal, each with a full mip chain down to 1x1 (partial blocks padded)."""
+    total, level = 0, 0
+    while True:
+        w, h = max(1, width >> level), max(1, height >> level)
+        total += math.ceil(w / 4) * math.ceil(h / 4) * (8 + 8 + 16)
+        if w == 1 and h == 1:
+            return total
+        level += 1
+
+
+def _row(cells: list[str], widths: list[int]) -> str:
+    return "  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(cells, widths)))
+
+
+def format_report(report: Report, title: Optional[str] = None) -> str:
+    """The report as a plain-text table (per mip PSNR / SSIM per texture, aggregates, sizes, times)."""
+    names = ["albedo", "normal", "arm", "all"]
+    header = ["mip", "size"] + [f"PSNR {n}" for n in names] + ["SSIM all"]
+    rows = [[str(m.mip), f"{m.width}x{m.height}"] + [f"{getattr(m.psnr, n):.2f}" for n in names]
+            + [f"{m.ssim.all:.4f}"] for m in report.per_mip]
+    a = report.aggregate
+    rows.append(["all", "mean"] + [f"{getattr(a.psnr, n):.2f}" for n in names] + [f"{a.ssim.all:.4f}"])
+    widths = [max(len(r[i]) for r in rows + [header]) for i in range(len(header))]
+    lines = [title] if title else []
+    lines += [_row(header, widths)] + [_row(r, widths) for r in rows]
+    lines.append("")
+    lines.append(f"1 spp (jittered) PSNR all: {report.jittered.aggregate.psnr.all:.2f} dB; "
+                 + ", ".join(f"{k}: {v.psnr.all:.2f} dB" for k, v in report.models.items())
+                 + f"; per-channel mean: {report.mean_baseline.psnr.all:.2f} dB")
+    s, t = report.size, report.timing
+    lines.append(f"size: {s.total_bytes / 2**20:.3f} MiB ({s.features_bytes:,} B features + {s.weights_bytes:,} B "
+                 f"weights, {s.bits_per_texel:.2f} bits/texel); BC1+BC5 at this size: {s.bc1_bc5_bytes / 2**20:.3f} MiB")
+    lines.append(f"time: phase 1 {t.phase1_s:.1f} s, phase 2 {t.phase2_s:.1f} s, export {t.export_s:.1f} s, "
+                 f"evaluation {t.evaluation_s:.1f} s, total {t.total_s:.1f} s on {report.device}")
+    return "\n".join(lines)

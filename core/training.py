@@ -1,0 +1,160 @@
+"""The two-phase fit of paper §5.1: unconstrained features, partition search, BC6H block features.
+
+`fit` is a plain loop per phase: sample a batch of random (u, v) and one random scale s, sample the
+reference F(M) and the model G at them, MSE (eq. 5), Adam step, exponential learning-rate decay.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Optional
+
+import torch
+
+from bcf.core.material import TextureSet
+from bcf.core.model import (BlockFeatures, Decoder, FeatureTextureSpec, FreeFeatures, NeuralMaterial,
+                            feature_textures, to_block_features)
+from bcf.core.options import ResolvedOptions
+from bcf.core.sampling import ReferenceMaterial
+
+__all__ = ["FitResult", "TrainingProgress", "TrainingStopped", "fit"]
+
+PROGRESS_INTERVAL_S = 0.5
+HISTORY_INTERVAL_S = 2.0
+
+
+@dataclass(frozen=True)
+class TrainingProgress:
+    """A snapshot for progress displays. psnr is the running training PSNR (dB) of the loss."""
+
+    phase: int
+    iteration: int
+    total: int
+    psnr: float
+    iterations_per_s: float
+    eta_s: float
+    elapsed_s: float
+
+
+@dataclass(frozen=True)
+class HistoryPoint:
+    phase: int
+    iteration: int
+    elapsed_s: float  # since the start of the fit
+    psnr: float
+
+
+class TrainingStopped(Exception):
+    """Raised inside `fit` when its `should_stop` callback returns True (cancellation)."""
+
+
+@dataclass
+class FitResult:
+    model: NeuralMaterial  # phase-2 model with BlockFeatures (or phase 1's if phase 2 has 0 iterations)
+    phase1_model: NeuralMaterial  # snapshot at the end of phase 1 (unconstrained features)
+    specs: tuple[FeatureTextureSpec, ...]
+    phase1_s: float
+    transition_s: float
+    phase2_s: float
+    history: list[HistoryPoint] = field(default_factory=list)
+
+
+ProgressCallback = Callable[[TrainingProgress], None]
+StopCallback = Callable[[], bool]
+# Called with (phase, iteration, model) every `checkpoint_every` iterations and at the end of each phase
+# (benchmarks evaluate the model there; the time it takes is not excluded from the phase timings).
+CheckpointCallback = Callable[[int, int, NeuralMaterial], None]
+
+
+def _psnr(mse: float) -> float:
+    return 10.0 * math.log10(1.0 / max(mse, 1e-12))
+
+
+def _train_phase(model: NeuralMaterial, reference: ReferenceMaterial, phase: int, iterations: int,
+                 batch_size: int, lr_features: float, lr_mlp: float, decay: float, generator: torch.Generator,
+                 start: float, history: list[HistoryPoint], progress: Optional[ProgressCallback],
+                 should_stop: Optional[StopCallback], checkpoint: Optional[CheckpointCallback] = None,
+                 checkpoint_every: int = 0) -> None:
+    device = model.decoder.input_scale.device
+    optimizer = torch.optim.Adam([{"params": model.features.parameters(), "lr": lr_features},
+                                  {"params": model.decoder.parameters(), "lr": lr_mlp}])
+    base_lrs = [lr_features, lr_mlp]
+    top_scale = reference.levels - 1  # s in [0, S - 1]: eq. 10 needs a level above floor(s)
+    phase_start = time.perf_counter()
+    last_report = last_history = phase_start
+    running = None
+    for iteration in range(1, iterations + 1):
+        if should_stop is not None and should_stop():
+            raise TrainingStopped(f"stopped in phase {phase} at iteration {iteration - 1}")
+        s = float(torch.rand((), generator=generator, device=device)) * top_scale
+        uv = torch.rand((batch_size, 2), generator=generator, device=device)
+        with torch.no_grad():
+            target = reference.sample(uv, s)
+        loss = torch.mean((model(uv, s) - target) ** 2)  # eq. 5
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        if isinstance(model.features, BlockFeatures):
+            model.features.clamp_()
+        for group, base in zip(optimizer.param_groups, base_lrs):
+            group["lr"] = base * decay**iteration
+        value = float(loss.detach())
+        running = value if running is None else 0.95 * running + 0.05 * value
+        now = time.perf_counter()
+        if now - last_history >= HISTORY_INTERVAL_S or iteration == iterations:
+            history.append(HistoryPoint(phase, iteration, now - start, _psnr(running)))
+            last_history = now
+        if progress is not None and (now - last_report >= PROGRESS_INTERVAL_S or iteration == iterations):
+            rate = iteration / max(now - phase_start, 1e-9)
+            progress(TrainingProgress(phase, iteration, iterations, _psnr(running), rate,
+                                      (iterations - iteration) / rate, now - start))
+            last_report = now
+        if checkpoint is not None and (iteration == iterations or
+                                       (checkpoint_every and iteration % checkpoint_every == 0)):
+            checkpoint(phase, iteration, model)
+
+
+def fit(material: TextureSet, options: ResolvedOptions, progress: Optional[ProgressCallback] = None,
+        should_stop: Optional[StopCallback] = None, checkpoint: Optional[CheckpointCallback] = None,
+        checkpoint_every: int = 0) -> FitResult:
+    """Fit a neural material to `material` with the two-phase schedule of `options`.
+
+    Raises TrainingStopped when `should_stop()` turns True (checked every iteration). CPU runs with the same
+    options and seed give identical results.
+    """
+    device = torch.device(options.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise RuntimeError("--device cuda: no CUDA device is available to torch")
+    torch.manual_seed(options.seed)
+    generator = torch.Generator(device=device).manual_seed(options.seed)
+    init_generator = torch.Generator().manual_seed(options.seed)
+    reference = ReferenceMaterial(material.channels, options.address, device)
+    specs = feature_textures(material.width, material.height, options.features)
+    history: list[HistoryPoint] = []
+    start = time.perf_counter()
+
+    free = FreeFeatures(specs, init_generator).to(device)
+    decoder = Decoder(options.hidden).to(device)
+    model = NeuralMaterial(free, decoder, options.address)
+    _train_phase(model, reference, 1, options.phase1_iterations, options.batch_size, options.lr_features_phase1,
+                 options.lr_mlp_phase1, options.decay_phase1, generator, start, history, progress, should_stop,
+                 checkpoint, checkpoint_every)
+    phase1_s = time.perf_counter() - start
+    phase1_model = copy.deepcopy(model)
+
+    t0 = time.perf_counter()
+    blocks = to_block_features(free, decoder, options.block_mode)
+    model = NeuralMaterial(blocks, decoder, options.address)
+    transition_s = time.perf_counter() - t0
+    if checkpoint is not None:
+        checkpoint(2, 0, model)
+
+    t0 = time.perf_counter()
+    _train_phase(model, reference, 2, options.phase2_iterations, options.batch_size, options.lr_features_phase2,
+                 options.lr_mlp_phase2, options.decay_phase2, generator, start, history, progress, should_stop,
+                 checkpoint, checkpoint_every)
+    phase2_s = time.perf_counter() - t0
+    return FitResult(model, phase1_model, specs, phase1_s, transition_s, phase2_s, history)

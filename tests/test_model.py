@@ -1,0 +1,182 @@
+"""Fast unit tests for the numerics of the neural material: sampling, pyramid geometry, the decoder's
+folding, the phase 1 -> 2 transition, metrics and options."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from bcf.core import bc6h, metrics, model, report
+from bcf.core.options import PRESETS, CompressOptions, resolve_options
+from bcf.core.sampling import (ReferenceMaterial, material_mip_count, sample_bicubic, sample_bilinear,
+                               sample_trilinear, texel_centres, trilinear_levels)
+
+
+def _bilinear_reference(image: np.ndarray, u: float, v: float, wrap: bool) -> np.ndarray:
+    """Textbook bilinear lookup with texel centres at (i + 0.5) / n, written independently of grid_sample."""
+    c, h, w = image.shape
+    x, y = u * w - 0.5, v * h - 0.5
+    x0, y0 = math.floor(x), math.floor(y)
+    ax, ay = x - x0, y - y0
+
+    def tap(i: int, j: int) -> np.ndarray:
+        i = i % w if wrap else min(max(i, 0), w - 1)
+        j = j % h if wrap else min(max(j, 0), h - 1)
+        return image[:, j, i]
+
+    return ((1 - ax) * (1 - ay) * tap(x0, y0) + ax * (1 - ay) * tap(x0 + 1, y0)
+            + (1 - ax) * ay * tap(x0, y0 + 1) + ax * ay * tap(x0 + 1, y0 + 1))
+
+
+@pytest.mark.parametrize("address", ["wrap", "clamp"])
+def test_bilinear_matches_textbook_filter(address: str) -> None:
+    rng = np.random.default_rng(1)
+    image = rng.random((3, 8, 16)).astype(np.float32)
+    uv = np.concatenate([rng.random((200, 2)), [[0.0, 0.0], [0.999, 0.999], [0.5 / 16, 0.5 / 8]]])
+    if address == "wrap":
+        uv = np.concatenate([uv, uv[:20] + 1.0, uv[:20] - 2.0])  # periodic
+    got = sample_bilinear(torch.from_numpy(image), torch.from_numpy(uv).float(), address).numpy()
+    want = np.stack([_bilinear_reference(image, u, v, address == "wrap") for u, v in uv])
+    np.testing.assert_allclose(got, want, atol=2e-6)
+
+
+def test_bilinear_at_texel_centres_returns_texels() -> None:
+    image = torch.rand(3, 8, 4)
+    values = sample_bilinear(image, texel_centres(4, 8), "wrap")
+    torch.testing.assert_close(values.T.reshape(3, 8, 4), image)
+
+
+def test_bicubic_reproduces_constants_and_is_periodic_with_wrap() -> None:
+    image = torch.full((2, 8, 8), 0.25)
+    uv = torch.rand(100, 2)
+    torch.testing.assert_close(sample_bicubic(image, uv, "wrap"), torch.full((100, 2), 0.25))
+    ramp = torch.rand(1, 8, 8)
+    torch.testing.assert_close(sample_bicubic(ramp, uv, "wrap"), sample_bicubic(ramp, uv + 3.0, "wrap"),
+                               atol=1e-5, rtol=0)
+
+
+def test_trilinear_levels_clamp_and_blend() -> None:
+    assert trilinear_levels(-1.0, 5) == (0, 1, 0.0)  # magnification: level 0 alone
+    assert trilinear_levels(1.25, 5) == (1, 2, 0.25)
+    assert trilinear_levels(4.0, 5) == (4, 4, 0.0)
+    assert trilinear_levels(9.0, 5) == (4, 4, 0.0)
+    levels = [torch.full((1, 8 >> l, 8 >> l), float(l)) for l in range(3)]
+    uv = torch.rand(10, 2)
+    value = sample_trilinear(lambda l: levels[l], 3, uv, 1.5, "wrap")
+    torch.testing.assert_close(value, torch.full((10, 1), 1.5))
+
+
+def test_reference_pyramid_and_scale_range() -> None:
+    channels = np.random.default_rng(0).random((64, 128, 8)).astype(np.float32)
+    reference = ReferenceMaterial(channels, "wrap")
+    assert material_mip_count(128, 64) == 5 == reference.levels
+    assert [tuple(m.shape) for m in reference.mips][-1] == (8, 4, 8)  # shorter side 4
+    # The box filter preserves the mean; bicubic at texel centres of a level returns its texels.
+    np.testing.assert_allclose(reference.mip(2).mean((1, 2)).numpy(), channels.mean((0, 1)), atol=1e-5)
+    torch.testing.assert_close(reference.sample(texel_centres(32, 16), 2.0).T.reshape(8, 16, 32), reference.mip(2),
+                               atol=1e-5, rtol=0)
+
+
+def test_feature_textures_follow_table_1() -> None:
+    # Paper Table 1 (2K material): T0..T3 sizes and mip counts for 0.5k / 1k / 2k.
+    table = {"0.5k": [(512, 8), (256, 7), (128, 6), (64, 5)], "1k": [(1024, 9), (512, 8), (256, 7), (128, 6)],
+             "2k": [(2048, 10), (1024, 9), (512, 8), (256, 7)]}
+    for features, expected in table.items():
+        specs = model.feature_textures(2048, 2048, features)
+        assert [(s.width, s.levels) for s in specs] == expected
+        assert [s.lod_bias for s in specs] == [math.log2(w / 2048) for w, _ in expected]
+    small = model.feature_textures(64, 64, "0.5k")  # sides never below one block
+    assert [(s.width, s.height, s.levels) for s in small] == [(16, 16, 3), (8, 8, 2), (4, 4, 1), (4, 4, 1)]
+    wide = model.feature_textures(1024, 512, "1k")
+    assert (wide[0].width, wide[0].height, wide[0].lod_bias) == (512, 256, -1.0)
+
+
+def test_decoder_folding_is_exact() -> None:
+    torch.manual_seed(0)
+    decoder = model.Decoder(16)
+    with torch.no_grad():
+        decoder.input_scale.uniform_(0.5, 2.0)
+        decoder.input_offset.uniform_(-1.0, 1.0)
+    folded = model.Decoder.from_layers(decoder.folded_layers())
+    x = torch.rand(50, 12)
+    torch.testing.assert_close(folded(x), decoder(x), atol=1e-5, rtol=1e-5)
+
+
+def test_transition_keeps_the_mlp_inputs() -> None:
+    """Phase 1 -> 2 remaps feature values into [0, 1] and folds the inverse into the decoder, so before any
+    phase-2 step the MLP sees nearly the phase-1 inputs (up to BC6H compression of the features)."""
+    specs = model.feature_textures(64, 64, "2k")
+    free = model.FreeFeatures(specs, torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        for p in free.texels:  # smooth, range-shifted features compress well
+            h, w = p.shape[1:]
+            yy, xx = torch.meshgrid(torch.linspace(0, 1, h), torch.linspace(0, 1, w), indexing="ij")
+            p.copy_(torch.stack([3 * xx - 1, 2 * yy + 5, xx * yy]))
+    decoder = model.Decoder(16)
+    phase1 = model.NeuralMaterial(free, decoder, "wrap")
+    uv = torch.rand(500, 2)
+    before = (phase1.sample_features(uv, 0.0) * decoder.input_scale + decoder.input_offset).detach()
+    blocks = model.to_block_features(free, decoder, 10)
+    phase2 = model.NeuralMaterial(blocks, decoder, "wrap")
+    after = (phase2.sample_features(uv, 0.0) * decoder.input_scale + decoder.input_offset).detach()
+    span = before.max(0).values - before.min(0).values
+    assert float(((after - before).abs() / span.clamp(min=1e-3)).mean()) < 0.05
+    stored = phase2.sample_features(uv, 0.0).detach()
+    assert float(stored.min()) >= 0.0 and float(stored.max()) <= 1.3  # [0, 1] up to endpoint rounding
+
+
+def test_block_features_export_the_blocks_they_decode() -> None:
+    specs = model.feature_textures(64, 64, "1k")
+    free = model.FreeFeatures(specs, torch.Generator().manual_seed(3))
+    for mode in (10, 11):
+        blocks = model.to_block_features(free, model.Decoder(16), mode)
+        for texture, spec in enumerate(specs):
+            for level in range(spec.levels):
+                w, h = spec.level_size(level)
+                decoded = bc6h.decode_image(blocks.blocks(texture, level), w, h, signed=False)
+                trained = blocks.level(texture, level).detach().numpy().transpose(1, 2, 0)
+                np.testing.assert_array_equal(decoded.astype(np.float32), trained)
+
+
+def test_ssim_and_psnr() -> None:
+    image = torch.rand(3, 32, 32)
+    assert metrics.ssim(image, image) == pytest.approx(1.0, abs=1e-6)
+    assert metrics.ssim(image, torch.rand(3, 32, 32)) < 0.2
+    assert metrics.ssim(image[:, :4, :4], image[:, :4, :4]) == pytest.approx(1.0, abs=1e-6)  # tiny mips work
+    assert metrics.psnr_from_mse(0.01) == pytest.approx(20.0)
+    assert metrics.psnr_from_mse(0.0) == 100.0
+
+
+def test_summary_aggregates_mse_over_mips() -> None:
+    mips = [{"mse": {k: m for k in ("albedo", "normal", "arm", "all")},
+             "psnr": {k: metrics.psnr_from_mse(m) for k in ("albedo", "normal", "arm", "all")},
+             "ssim": {k: s for k in ("albedo", "normal", "arm", "all")}} for m, s in ((0.01, 0.5), (0.0001, 0.9))]
+    summary = report.summarise(mips, [(8, 8), (4, 4)])
+    assert summary.aggregate.psnr.all == pytest.approx(-10 * math.log10(0.00505))
+    assert summary.aggregate.ssim.all == pytest.approx(0.7)
+    assert [m.mip for m in summary.per_mip] == [0, 1]
+
+
+def test_bc1_bc5_size() -> None:
+    # 2048^2: BC1 + BC1 + BC5 = 32 bytes per 4x4 block over the full chain (the paper's "BC 2048" 10.67 MB).
+    assert report.bc1_bc5_bytes(2048, 2048) == 32 * sum(max(1, (2048 >> l) // 4) ** 2 for l in range(12))
+    assert report.bc1_bc5_bytes(2048, 2048) / 2**20 == pytest.approx(10.67, abs=0.01)
+
+
+def test_presets_resolve_with_overrides() -> None:
+    paper = resolve_options(CompressOptions(preset="paper"))
+    assert (paper.phase1_iterations, paper.phase2_iterations, paper.batch_size) == (5000, 200_000, 512 * 512)
+    assert (paper.lr_features_phase1, paper.lr_mlp_phase1, paper.decay_phase1) == (5e-2, 1e-3, 0.9995)
+    assert (paper.lr_features_phase2, paper.lr_mlp_phase2, paper.decay_phase2) == (1e-2, 1e-3, 0.99999)
+    assert (paper.hidden, paper.block_mode) == (16, 10)
+    custom = resolve_options(CompressOptions(preset="fast", phase2_iterations=7, hidden=32))
+    assert custom.phase2_iterations == 7 and custom.hidden == 32
+    assert custom.phase1_iterations == PRESETS["fast"].phase1_iterations
+    for preset in PRESETS.values():  # every schedule ends near the paper's final learning-rate ratios
+        assert preset.decay_phase1 ** preset.phase1_iterations == pytest.approx(0.082, rel=0.1)
+        assert preset.decay_phase2 ** preset.phase2_iterations == pytest.approx(0.135, rel=0.1)
+    with pytest.raises(ValueError):
+        CompressOptions(preset="fast", unknown=1)
