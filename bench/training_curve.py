@@ -32,6 +32,9 @@ def main() -> None:
     parser.add_argument("--block-mode", type=int, choices=(10, 11))
     parser.add_argument("--batch-size", type=int)
     parser.add_argument("--eval-every", type=int, default=1000)
+    parser.add_argument("--rescale-decay", action="store_true",
+                        help="recompute both decays so the learning rates end where the preset's do (8.2 %% and "
+                             "13.5 %% of the start) after the given iteration counts")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("-o", "--output", type=Path)
     args = parser.parse_args()
@@ -42,6 +45,10 @@ def main() -> None:
                                    "batch_size": args.batch_size}.items() if v is not None}
     options = resolve_options(CompressOptions(preset=args.preset, features=args.features, device=args.device,
                                               **overrides))
+    if args.rescale_decay:
+        options = options.model_copy(update={
+            "decay_phase1": 0.082 ** (1 / max(options.phase1_iterations, 1)),
+            "decay_phase2": 0.135 ** (1 / max(options.phase2_iterations, 1))})
     reference = ReferenceMaterial(texture_set.channels, options.address)
     sizes = [(m.shape[2], m.shape[1]) for m in reference.mips]
     points: list[dict] = []

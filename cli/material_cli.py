@@ -82,11 +82,12 @@ def add_commands(commands: argparse._SubParsersAction, user_error: type[Exceptio
 
 def _guarded(args: argparse.Namespace, handler: Callable[[argparse.Namespace], int],
              user_error: type[Exception]) -> int:
-    from bcf.core import compress, export  # torch: only when a command runs
+    from bcf.core import compress, export, training  # torch: only when a command runs
 
     try:
         return handler(args)
-    except (material_io.MaterialError, export.ExportError, compress.OutputExistsError) as exc:
+    except (material_io.MaterialError, export.ExportError, compress.OutputExistsError,
+            training.DeviceUnavailableError) as exc:
         raise user_error(str(exc)) from None
 
 

@@ -135,10 +135,12 @@ class StaticFeatures(nn.Module):
     def __init__(self, specs: Sequence[FeatureTextureSpec], levels: Sequence[Sequence[torch.Tensor]]):
         super().__init__()
         self.specs = tuple(specs)
-        self._levels = [list(t) for t in levels]
+        for texture, pyramid in enumerate(levels):
+            for level, image in enumerate(pyramid):
+                self.register_buffer(f"level_{texture}_{level}", image)
 
     def level(self, texture: int, level: int) -> torch.Tensor:
-        return self._levels[texture][level]
+        return getattr(self, f"level_{texture}_{level}")
 
 
 class BlockFeatures(nn.Module):
@@ -158,13 +160,16 @@ class BlockFeatures(nn.Module):
         self.top = float((1 << self.spec.endpoint_bits) - 1)
         self.endpoints = nn.ParameterList()
         self.weights = nn.ParameterList()
-        self.partitions: list[torch.Tensor] = []
-        for fit in fits:
+        for number, fit in enumerate(fits):
             self.endpoints.append(nn.Parameter(torch.tensor(fit.endpoints / self.top, dtype=torch.float32,
                                                             device=device)))
             self.weights.append(nn.Parameter(torch.tensor(fit.weights, dtype=torch.float32, device=device)))
-            self.partitions.append(torch.as_tensor(fit.partition, device=device))
+            # Buffers, so that .to(device) moves them with the parameters.
+            self.register_buffer(f"partition_{number}", torch.as_tensor(fit.partition, device=device))
         self._start = np.cumsum([0] + [s.levels for s in self.specs])
+
+    def _partition(self, index: int) -> torch.Tensor:
+        return getattr(self, f"partition_{index}")
 
     def _index(self, texture: int, level: int) -> int:
         return int(self._start[texture]) + level
@@ -172,7 +177,7 @@ class BlockFeatures(nn.Module):
     def level(self, texture: int, level: int) -> torch.Tensor:
         i = self._index(texture, level)
         w, h = self.specs[texture].level_size(level)
-        partition = self.partitions[i] if self.spec.regions == 2 else None
+        partition = self._partition(i) if self.spec.regions == 2 else None
         texels = bc6h.decode_blocks_differentiable(self.endpoints[i] * self.top, self.weights[i], partition,
                                                    signed=False)  # (nb, 16, 3)
         return texels.view(h // 4, w // 4, 4, 4, 3).permute(4, 0, 2, 1, 3).reshape(3, h, w)
@@ -194,7 +199,7 @@ class BlockFeatures(nn.Module):
         ends_np = ends.cpu().numpy().astype(np.int64)
         index_np = index.cpu().numpy().astype(np.int64)
         if self.spec.regions == 2:
-            blocks = bc6h.encode_mode10(ends_np, index_np, self.partitions[i].cpu().numpy(), signed=False)
+            blocks = bc6h.encode_mode10(ends_np, index_np, self._partition(i).cpu().numpy(), signed=False)
         else:
             blocks = bc6h.encode_mode11(ends_np[:, 0], index_np, signed=False)
         return blocks.reshape(h // 4, w // 4, bc6h.BLOCK_BYTES)

@@ -24,25 +24,30 @@ __all__ = ["Address", "ReferenceMaterial", "material_mip_count", "sample_bicubic
            "sample_trilinear", "texel_centres", "trilinear_levels"]
 
 Address = Literal["wrap", "clamp"]
+_BICUBIC_PAD = 2  # texels a bicubic tap reaches beyond the sample's own texel
+
+
+def _wrap_grid(uv: torch.Tensor, w: int, h: int, pad: int) -> torch.Tensor:
+    """grid_sample coordinates (align_corners=False) of uv in a w x h image circularly padded by `pad`."""
+    uv = uv - torch.floor(uv)
+    scale = torch.tensor([w / (w + 2 * pad), h / (h + 2 * pad)], dtype=uv.dtype, device=uv.device)
+    offset = torch.tensor([pad / (w + 2 * pad), pad / (h + 2 * pad)], dtype=uv.dtype, device=uv.device)
+    return (uv * scale + offset) * 2.0 - 1.0
+
+
+def _grid_sample(batch: torch.Tensor, grid: torch.Tensor, mode: str, padding_mode: str) -> torch.Tensor:
+    out = F.grid_sample(batch, grid.view(1, 1, -1, 2), mode=mode, padding_mode=padding_mode, align_corners=False)
+    return out[0, :, 0].transpose(0, 1)
 
 
 def _sample(image: torch.Tensor, uv: torch.Tensor, address: Address, mode: str, pad: int) -> torch.Tensor:
     """grid_sample an image (C, h, w) at uv (N, 2) -> (N, C). Wrap addressing is a circular pad of `pad`
     texels (grid_sample has no repeat mode); the taps of the filter never reach past it."""
     _, h, w = image.shape
-    batch = image.unsqueeze(0)
     if address == "wrap":
-        uv = uv - torch.floor(uv)
-        batch = F.pad(batch, (pad, pad, pad, pad), mode="circular")
-        size = torch.tensor([w + 2 * pad, h + 2 * pad], dtype=uv.dtype, device=uv.device)
-        offset = torch.tensor([pad / (w + 2 * pad), pad / (h + 2 * pad)], dtype=uv.dtype, device=uv.device)
-        grid = (uv * torch.tensor([w, h], dtype=uv.dtype, device=uv.device) / size + offset) * 2.0 - 1.0
-        padding_mode = "zeros"  # unreachable after the circular pad
-    else:
-        grid = uv * 2.0 - 1.0
-        padding_mode = "border"
-    out = F.grid_sample(batch, grid.view(1, 1, -1, 2), mode=mode, padding_mode=padding_mode, align_corners=False)
-    return out[0, :, 0].transpose(0, 1)
+        padded = F.pad(image.unsqueeze(0), (pad, pad, pad, pad), mode="circular")
+        return _grid_sample(padded, _wrap_grid(uv, w, h, pad), mode, "zeros")  # zeros: unreachable
+    return _grid_sample(image.unsqueeze(0), uv * 2.0 - 1.0, mode, "border")
 
 
 def sample_bilinear(image: torch.Tensor, uv: torch.Tensor, address: Address) -> torch.Tensor:
@@ -53,7 +58,7 @@ def sample_bilinear(image: torch.Tensor, uv: torch.Tensor, address: Address) -> 
 def sample_bicubic(image: torch.Tensor, uv: torch.Tensor, address: Address) -> torch.Tensor:
     """Bicubic lookup (Keys' cubic convolution, a = -0.75, as torch implements it): (C, h, w), (N, 2) -> (N, C).
     Used for the reference material only."""
-    return _sample(image, uv, address, "bicubic", 2)
+    return _sample(image, uv, address, "bicubic", _BICUBIC_PAD)
 
 
 def trilinear_levels(s: float, levels: int) -> tuple[int, int, float]:
@@ -105,6 +110,9 @@ class ReferenceMaterial:
         self.address = address
         self.mips = [torch.from_numpy(np.ascontiguousarray(m.transpose(2, 0, 1))).to(device)
                      for m in images.mip_chain(channels, material_mip_count(width, height))]
+        # Wrap padding done once: padding a 2K, 8-channel mip per lookup was a third of a training step.
+        self._padded = [F.pad(m.unsqueeze(0), (_BICUBIC_PAD,) * 4, mode="circular") for m in self.mips] \
+            if address == "wrap" else None
 
     @property
     def levels(self) -> int:
@@ -113,10 +121,16 @@ class ReferenceMaterial:
     def sample(self, uv: torch.Tensor, s: float) -> torch.Tensor:
         """F(M)(u, v, s): uv (N, 2), s in [0, levels - 1] -> (N, C)."""
         low, high, weight = trilinear_levels(s, self.levels)
-        value = sample_bicubic(self.mips[low], uv, self.address)
+        value = self._bicubic(low, uv)
         if weight > 0.0:
-            value = torch.lerp(value, sample_bicubic(self.mips[high], uv, self.address), weight)
+            value = torch.lerp(value, self._bicubic(high, uv), weight)
         return value
+
+    def _bicubic(self, level: int, uv: torch.Tensor) -> torch.Tensor:
+        if self._padded is None:
+            return sample_bicubic(self.mips[level], uv, self.address)
+        _, h, w = self.mips[level].shape
+        return _grid_sample(self._padded[level], _wrap_grid(uv, w, h, _BICUBIC_PAD), "bicubic", "zeros")
 
     def mip(self, level: int) -> torch.Tensor:
         """The stored mip `level` as (C, h, w)."""

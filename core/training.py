@@ -20,7 +20,7 @@ from bcf.core.model import (BlockFeatures, Decoder, FeatureTextureSpec, FreeFeat
 from bcf.core.options import ResolvedOptions
 from bcf.core.sampling import ReferenceMaterial
 
-__all__ = ["FitResult", "TrainingProgress", "TrainingStopped", "fit"]
+__all__ = ["DeviceUnavailableError", "FitResult", "TrainingProgress", "TrainingStopped", "fit"]
 
 PROGRESS_INTERVAL_S = 0.5
 HISTORY_INTERVAL_S = 2.0
@@ -45,6 +45,10 @@ class HistoryPoint:
     iteration: int
     elapsed_s: float  # since the start of the fit
     psnr: float
+
+
+class DeviceUnavailableError(ValueError):
+    """The requested torch device does not exist on this machine."""
 
 
 class TrainingStopped(Exception):
@@ -127,7 +131,8 @@ def fit(material: TextureSet, options: ResolvedOptions, progress: Optional[Progr
     """
     device = torch.device(options.device)
     if device.type == "cuda" and not torch.cuda.is_available():
-        raise RuntimeError("--device cuda: no CUDA device is available to torch")
+        raise DeviceUnavailableError("device 'cuda' requested, but torch sees no CUDA device (CPU-only torch "
+                                     f"build {torch.__version__}, or no GPU/driver); use --device cpu")
     torch.manual_seed(options.seed)
     generator = torch.Generator(device=device).manual_seed(options.seed)
     init_generator = torch.Generator().manual_seed(options.seed)

@@ -213,12 +213,13 @@ def decoded(chainmail: Compressed, tmp_path_factory: pytest.TempPathFactory) -> 
 # ------------------------------------------------------------------------------- 1. export bit-exactness
 
 
+@pytest.mark.parametrize("block_mode", [10, 11])
 def test_exported_features_equal_the_training_forward_pass_in_three_decoders(
-        chainmail_set: TextureSet, tmp_path: Path, mesa: MesaBC6HDecoder) -> None:
+        chainmail_set: TextureSet, tmp_path: Path, mesa: MesaBC6HDecoder, block_mode: int) -> None:
     """Every mip of every feature texture, decoded from the DDS file by bcf, OpenImageIO and Mesa, is exactly
     what the phase-2 forward pass used (BlockFeatures.level): what was trained is what ships."""
     resolved = resolve_options(CompressOptions(preset="fast", phase1_iterations=60, phase2_iterations=60,
-                                               batch_size=4096))
+                                               batch_size=4096, block_mode=block_mode))
     result = training.fit(chainmail_set, resolved)
     mips = material_mip_count(chainmail_set.width, chainmail_set.height)
     manifest = export.write_export(tmp_path, result.model, chainmail_set.source, mips, resolved)
