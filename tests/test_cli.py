@@ -4,7 +4,6 @@ tests of the helpers it relies on: `images.mip_chain`, `images.read_rgb` and `bc
 from __future__ import annotations
 
 import re
-import shutil
 import subprocess
 import sys
 from dataclasses import dataclass
@@ -18,25 +17,10 @@ import bcf
 from bcf.core import bc6h, containers
 from bcf.core.bc6h_tools import mode_histogram
 from bcf.core.images import mip_chain, read_rgb
+from bcf_command import run_bcf
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE = ROOT / "examples" / "sample" / "albedo.png"
-
-
-def _bcf_command() -> list[str]:
-    """The console script installed beside this interpreter, else one on PATH, else `python -m bcf`."""
-    beside = Path(sys.executable).with_name("bcf")
-    if beside.is_file():
-        return [str(beside)]
-    found = shutil.which("bcf")
-    return [found] if found else [sys.executable, "-m", "bcf"]
-
-
-BCF = _bcf_command()
-
-
-def run_bcf(*args: object) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([*BCF, *map(str, args)], capture_output=True, text=True, timeout=120)
 
 
 def assert_user_error(result: subprocess.CompletedProcess[str], *named: object) -> None:

@@ -11,11 +11,9 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import shutil
 import signal
 import subprocess
-import sys
 import threading
 from functools import lru_cache
 from pathlib import Path
@@ -27,11 +25,11 @@ import pytest
 import torch
 
 from bcf.core import bc6h, compress, containers, export, training
-from bcf.core.images import read_image
 from bcf.core.material import TextureSet, load_material
 from bcf.core.options import CompressOptions, resolve_options
 from bcf.core.report import Report
 from bcf.core.sampling import ReferenceMaterial, material_mip_count
+from bcf_command import BCF, ONE_THREAD_ENV, run_bcf
 from reference_decoders import MesaBC6HDecoder, decode_with_mesa, decode_with_oiio
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -48,29 +46,10 @@ DDS_HEADER_BYTES = 148  # magic + DDS_HEADER + DDS_HEADER_DXT10
 # 19.4 dB (+8.1); the sample crop 31.1 dB against 27.5 dB (+3.6: its normal and ARM maps are smooth, so the mean
 # already does well there).
 MIN_GAIN_OVER_MEAN_DB = {"chainmail": 5.0, "sample": 2.0}
-# Tiny batches run faster on one torch thread than on two (and far faster when the cores are shared): tests use one,
-# in process and in the `bcf` subprocesses. Results do not depend on it being the same everywhere.
-ONE_THREAD_ENV = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 PNG16 = 65535.0
 
 
 # ------------------------------------------------------------------------------------------------ helpers
-
-
-def _bcf_command() -> list[str]:
-    """The console script installed beside this interpreter, else one on PATH, else `python -m bcf`."""
-    beside = Path(sys.executable).with_name("bcf")
-    if beside.is_file():
-        return [str(beside)]
-    found = shutil.which("bcf")
-    return [found] if found else [sys.executable, "-m", "bcf"]
-
-
-BCF = _bcf_command()
-
-
-def run_bcf(*args: object, timeout: float = 180) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([*BCF, *map(str, args)], capture_output=True, text=True, timeout=timeout, env=ONE_THREAD_ENV)
 
 
 def assert_user_error(result: subprocess.CompletedProcess[str], *named: object) -> None:

@@ -17,12 +17,8 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import os
 import re
-import shutil
 import struct
-import subprocess
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,6 +26,7 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
+from bcf_command import run_bcf
 from reference_decoders import decode_with_oiio, oiio_mip_sizes
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -41,19 +38,8 @@ RENDER_FILES = {f"features_{i}.dds" for i in range(4)} | {"decoder.bin", "manife
 HALF_TOLERANCE = 1e-3  # > 1 half ulp at [0.5, 1] (4.9e-4): the EXRs are half floats
 
 
-def _bcf_command() -> list[str]:
-    beside = Path(sys.executable).with_name("bcf")
-    if beside.is_file():
-        return [str(beside)]
-    found = shutil.which("bcf")
-    return [found] if found else [sys.executable, "-m", "bcf"]
-
-
-def run_bcf(*args: object) -> None:
-    # One torch thread: on a shared, busy CPU two threads on these tiny batches can be 10x slower. Results are
-    # the same (the export does not depend on the thread count).
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    result = subprocess.run([*_bcf_command(), *map(str, args)], capture_output=True, text=True, timeout=300, env=env)
+def run_bcf_ok(*args: object) -> None:
+    result = run_bcf(*args, timeout=300)
     assert result.returncode == 0, f"bcf {' '.join(map(str, args))} failed:\n{result.stdout}\n{result.stderr}"
 
 
@@ -111,9 +97,9 @@ def export(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFact
         write_uint8(material / name, crops[name])
     stored = np.concatenate([crops["albedo.png"], crops["normal_gl.png"][..., :2], crops["arm.png"]], axis=2)
     folder, decoded = base / "out", base / "decoded"
-    run_bcf("compress", material, "-o", folder, "--preset", "fast", "--phase1-iterations", 60,
+    run_bcf_ok("compress", material, "-o", folder, "--preset", "fast", "--phase1-iterations", 60,
             "--phase2-iterations", 60, "--batch-size", 4096, "-q", *extra)
-    run_bcf("decode", folder, "-o", decoded, "--all-mips", "--format", "exr")
+    run_bcf_ok("decode", folder, "-o", decoded, "--all-mips", "--format", "exr")
     return Export(request.param, folder, decoded, stored.astype(np.float64) / 255.0)
 
 
