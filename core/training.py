@@ -79,6 +79,7 @@ def _psnr(mse: float) -> float:
 
 def _train_phase(model: NeuralMaterial, reference: ReferenceMaterial, phase: int, iterations: int,
                  batch_size: int, lr_features: float, lr_mlp: float, decay: float, generator: torch.Generator,
+                 scale_generator: torch.Generator,
                  start: float, history: list[HistoryPoint], progress: Optional[ProgressCallback],
                  should_stop: Optional[StopCallback], checkpoint: Optional[CheckpointCallback] = None,
                  checkpoint_every: int = 0) -> None:
@@ -93,7 +94,8 @@ def _train_phase(model: NeuralMaterial, reference: ReferenceMaterial, phase: int
     for iteration in range(1, iterations + 1):
         if should_stop is not None and should_stop():
             raise TrainingStopped(f"stopped in phase {phase} at iteration {iteration - 1}")
-        s = float(torch.rand((), generator=generator, device=device)) * top_scale
+        # s is needed on the host (it picks the mips), so it comes from a CPU generator: no device sync.
+        s = float(torch.rand((), generator=scale_generator)) * top_scale
         uv = torch.rand((batch_size, 2), generator=generator, device=device)
         with torch.no_grad():
             target = reference.sample(uv, s)
@@ -105,15 +107,15 @@ def _train_phase(model: NeuralMaterial, reference: ReferenceMaterial, phase: int
             model.features.clamp_()
         for group, base in zip(optimizer.param_groups, base_lrs):
             group["lr"] = base * decay**iteration
-        value = float(loss.detach())
-        running = value if running is None else 0.95 * running + 0.05 * value
+        # A running mean kept on the device; read back only when reported (a read is a GPU sync).
+        running = loss.detach() if running is None else running * 0.95 + loss.detach() * 0.05
         now = time.perf_counter()
         if now - last_history >= HISTORY_INTERVAL_S or iteration == iterations:
-            history.append(HistoryPoint(phase, iteration, now - start, _psnr(running)))
+            history.append(HistoryPoint(phase, iteration, now - start, _psnr(float(running))))
             last_history = now
         if progress is not None and (now - last_report >= PROGRESS_INTERVAL_S or iteration == iterations):
             rate = iteration / max(now - phase_start, 1e-9)
-            progress(TrainingProgress(phase, iteration, iterations, _psnr(running), rate,
+            progress(TrainingProgress(phase, iteration, iterations, _psnr(float(running)), rate,
                                       (iterations - iteration) / rate, now - start))
             last_report = now
         if checkpoint is not None and (iteration == iterations or
@@ -135,6 +137,8 @@ def fit(material: TextureSet, options: ResolvedOptions, progress: Optional[Progr
                                      f"build {torch.__version__}, or no GPU/driver); use --device cpu")
     torch.manual_seed(options.seed)
     generator = torch.Generator(device=device).manual_seed(options.seed)
+    # On CPU one generator serves both; on a GPU the per-batch scale comes from its own CPU generator.
+    scale_generator = generator if device.type == "cpu" else torch.Generator().manual_seed(options.seed + 1)
     init_generator = torch.Generator().manual_seed(options.seed)
     reference = ReferenceMaterial(material.channels, options.address, device)
     specs = feature_textures(material.width, material.height, options.features)
@@ -145,8 +149,8 @@ def fit(material: TextureSet, options: ResolvedOptions, progress: Optional[Progr
     decoder = Decoder(options.hidden).to(device)
     model = NeuralMaterial(free, decoder, options.address)
     _train_phase(model, reference, 1, options.phase1_iterations, options.batch_size, options.lr_features_phase1,
-                 options.lr_mlp_phase1, options.decay_phase1, generator, start, history, progress, should_stop,
-                 checkpoint, checkpoint_every)
+                 options.lr_mlp_phase1, options.decay_phase1, generator, scale_generator, start, history, progress,
+                 should_stop, checkpoint, checkpoint_every)
     phase1_s = time.perf_counter() - start
     phase1_model = copy.deepcopy(model)
 
@@ -159,7 +163,7 @@ def fit(material: TextureSet, options: ResolvedOptions, progress: Optional[Progr
 
     t0 = time.perf_counter()
     _train_phase(model, reference, 2, options.phase2_iterations, options.batch_size, options.lr_features_phase2,
-                 options.lr_mlp_phase2, options.decay_phase2, generator, start, history, progress, should_stop,
-                 checkpoint, checkpoint_every)
+                 options.lr_mlp_phase2, options.decay_phase2, generator, scale_generator, start, history, progress,
+                 should_stop, checkpoint, checkpoint_every)
     phase2_s = time.perf_counter() - t0
     return FitResult(model, phase1_model, specs, phase1_s, transition_s, phase2_s, history)
