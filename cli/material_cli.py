@@ -22,6 +22,7 @@ COMMANDS = {
     "compress": "compress a PBR material (albedo, normal, ARM) into BC6H neural features + decoder weights",
     "decode": "reconstruct albedo / normal / ARM images from a compressed material folder",
     "info": "describe a compressed material folder (sizes, textures, decoder, quality)",
+    "check": "regression gate: compare a report.json with a stored baseline per mip and texture (exit 1 if worse)",
 }
 ROLE_OPTIONS = ("albedo", "normal", "arm", "ao", "roughness", "metalness")
 SCHEDULE_OPTIONS = ("phase1_iterations", "phase2_iterations", "batch_size", "hidden", "block_mode")
@@ -79,15 +80,27 @@ def add_commands(commands: argparse._SubParsersAction, user_error: type[Exceptio
     p.add_argument("folder", metavar="OUT", help="a folder written by 'bcf compress'")
     p.set_defaults(handler=functools.partial(guard, handler=_info))
 
+    p = commands.add_parser("check", help=COMMANDS["check"], description=COMMANDS["check"] + ".",
+                            epilog="Exit codes: 0 nothing got worse, 1 some PSNR dropped by more than the tolerance, "
+                                   "2 the reports cannot be compared (malformed, other material, other preset, other "
+                                   "mips) or a file is missing.")
+    p.add_argument("report", metavar="OUT", help="a 'bcf compress' folder, or its report.json")
+    p.add_argument("--baseline", metavar="BASELINE.json", required=True, type=Path,
+                   help="the stored report to compare with")
+    p.add_argument("--tolerance-db", type=float, default=0.25, metavar="DB",
+                   help="allowed PSNR drop per mip and texture (default: 0.25)")
+    p.add_argument("--update", action="store_true", help="write the report as the new baseline instead")
+    p.set_defaults(handler=functools.partial(guard, handler=_check))
+
 
 def _guarded(args: argparse.Namespace, handler: Callable[[argparse.Namespace], int],
              user_error: type[Exception]) -> int:
-    from bcf.core import compress, export, training  # torch: only when a command runs
+    from bcf.core import check, compress, export, training  # torch: only when a command runs
 
     try:
         return handler(args)
     except (material_io.MaterialError, export.ExportError, compress.OutputExistsError,
-            training.DeviceUnavailableError) as exc:
+            training.DeviceUnavailableError, check.CheckError) as exc:
         raise user_error(str(exc)) from None
 
 
@@ -227,3 +240,23 @@ def _info(args: argparse.Namespace) -> int:
         lines.append("no report.json")
     _say("\n".join(lines))
     return 0
+
+
+def _check(args: argparse.Namespace) -> int:
+    from bcf.core import check
+
+    if args.tolerance_db < 0:
+        raise check.CheckError(f"--tolerance-db must be >= 0, got {args.tolerance_db:g}")
+    current = check.load_report_file(Path(args.report))
+    if args.update:
+        baseline = args.baseline
+        baseline.parent.mkdir(parents=True, exist_ok=True)
+        temporary = baseline.with_name(f".{baseline.name}.tmp")
+        temporary.write_text(current.model_dump_json(indent=2) + "\n")
+        temporary.replace(baseline)
+        _say(f"wrote baseline {baseline} ({current.material.name}, preset {current.options.preset}, "
+             f"{len(current.per_mip)} mips, aggregate PSNR {current.aggregate.psnr.all:.2f} dB)")
+        return 0
+    rows = check.compare_reports(current, check.load_report_file(args.baseline), args.tolerance_db)
+    _say(check.format_check(rows, args.tolerance_db))
+    return 1 if any(r.worse for r in rows) else 0
