@@ -95,12 +95,12 @@ def add_commands(commands: argparse._SubParsersAction, user_error: type[Exceptio
 
 def _guarded(args: argparse.Namespace, handler: Callable[[argparse.Namespace], int],
              user_error: type[Exception]) -> int:
-    from bcf.core import check, compress, export, training  # torch: only when a command runs
+    from bcf.core import check, compress, export, report, training  # torch: only when a command runs
 
     try:
         return handler(args)
     except (material_io.MaterialError, export.ExportError, compress.OutputExistsError,
-            training.DeviceUnavailableError, check.CheckError) as exc:
+            training.DeviceUnavailableError, check.CheckError, report.ReportError) as exc:
         raise user_error(str(exc)) from None
 
 
@@ -217,7 +217,7 @@ def _decode(args: argparse.Namespace) -> int:
 
 
 def _info(args: argparse.Namespace) -> int:
-    from bcf.core import compress, export, report
+    from bcf.core import export, report
 
     folder = Path(args.folder)
     m = export.read_manifest(folder)
@@ -234,8 +234,8 @@ def _info(args: argparse.Namespace) -> int:
     lines.append(f"decoder:   {m.decoder.file}: MLP {shape} ({', '.join(l.activation for l in m.decoder.layers)}), "
                  f"{m.decoder.dtype}, {m.decoder.bytes} bytes")
     lines.append("outputs:   " + "; ".join(f"{o.name} = outputs {o.channels[0]}-{o.channels[-1]}" for o in m.outputs))
-    if (folder / compress.REPORT_FILE).is_file():
-        lines += ["", report.format_report(compress.read_report(folder), "quality (report.json):")]
+    if (folder / report.REPORT_FILE).is_file():
+        lines += ["", report.format_report(report.read_report(folder), "quality (report.json):")]
     else:
         lines.append("no report.json")
     _say("\n".join(lines))
@@ -243,11 +243,11 @@ def _info(args: argparse.Namespace) -> int:
 
 
 def _check(args: argparse.Namespace) -> int:
-    from bcf.core import check
+    from bcf.core import check, report
 
     if args.tolerance_db < 0:
         raise check.CheckError(f"--tolerance-db must be >= 0, got {args.tolerance_db:g}")
-    current = check.load_report_file(Path(args.report))
+    current = report.read_report(Path(args.report))
     if args.update:
         baseline = args.baseline
         baseline.parent.mkdir(parents=True, exist_ok=True)
@@ -257,6 +257,6 @@ def _check(args: argparse.Namespace) -> int:
         _say(f"wrote baseline {baseline} ({current.material.name}, preset {current.options.preset}, "
              f"{len(current.per_mip)} mips, aggregate PSNR {current.aggregate.psnr.all:.2f} dB)")
         return 0
-    rows = check.compare_reports(current, check.load_report_file(args.baseline), args.tolerance_db)
+    rows = check.compare_reports(current, report.read_report(args.baseline), args.tolerance_db)
     _say(check.format_check(rows, args.tolerance_db))
     return 1 if any(r.worse for r in rows) else 0

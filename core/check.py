@@ -1,4 +1,5 @@
-"""The regression gate: compare a fresh report.json with a stored baseline, per mip and per texture.
+"""The regression gate: compare a fresh report.json with a stored baseline (both read with
+`report.read_report`), per mip and per texture.
 
 A comparison is only meaningful between reports of the same material (same input files) and the same preset
 over the same mips; anything else is a `CheckError`, never a pass.
@@ -7,13 +8,9 @@ over the same mips; anything else is a `CheckError`, never a pass.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
-
-from pydantic import ValidationError
-
 from bcf.core.report import Report, TextureScores
 
-__all__ = ["CheckError", "CheckRow", "compare_reports", "format_check", "load_report_file"]
+__all__ = ["CheckError", "CheckRow", "compare_reports", "format_check"]
 
 TEXTURE_NAMES = tuple(TextureScores.model_fields)  # albedo, normal, arm, all
 
@@ -35,20 +32,6 @@ class CheckRow:
     @property
     def delta_db(self) -> float:
         return self.current_db - self.baseline_db
-
-
-def load_report_file(path: Path) -> Report:
-    """A report.json, or the report.json inside an export folder."""
-    path = Path(path)
-    file = path / "report.json" if path.is_dir() else path
-    if not file.is_file():
-        raise CheckError(f"{file}: no such file")
-    try:
-        return Report.model_validate_json(file.read_bytes())
-    except ValidationError as exc:
-        first = exc.errors()[0]
-        where = ".".join(str(p) for p in first["loc"]) or "(top level)"
-        raise CheckError(f"{file}: not a bcf report ({where}: {first['msg']})") from None
 
 
 def _inputs(report: Report) -> tuple[str, list[tuple[str, str]]]:

@@ -24,10 +24,9 @@ from bcf.core.options import CompressOptions, ResolvedOptions, resolve_options
 from bcf.core.sampling import ReferenceMaterial, material_mip_count
 from bcf.core.training import ProgressCallback, StopCallback, fit
 
-__all__ = ["REPORT_FILE", "OutputExistsError", "compress_material", "decode_export", "decoded_file_names",
-           "read_report"]
+__all__ = ["OutputExistsError", "compress_material", "decode_export", "decoded_file_names"]
 
-REPORT_FILE = "report.json"
+REPORT_FILE = report.REPORT_FILE
 JITTER_SEED = 12345  # fixed, so reports of the same export are identical
 
 
@@ -54,10 +53,13 @@ def _replace_folder(staged: Path, output: Path) -> None:
         staged.rename(output)
 
 
+def _mip_sizes(reference: ReferenceMaterial) -> list[tuple[int, int]]:
+    return [(m.shape[2], m.shape[1]) for m in reference.mips]
+
+
 def _evaluate(decoder: metrics.Decoder, reference: ReferenceMaterial,
               jitter_seed: Optional[int] = None) -> report.Evaluation:
-    sizes = [(m.shape[2], m.shape[1]) for m in reference.mips]
-    return report.summarise(metrics.evaluate(decoder, reference, jitter_seed), sizes)
+    return report.summarise(metrics.evaluate(decoder, reference, jitter_seed), _mip_sizes(reference))
 
 
 def _folder_bytes(folder: Path) -> int:
@@ -92,8 +94,7 @@ def compress_material(material: TextureSet, options: CompressOptions | ResolvedO
         models = {"exported": on_files.aggregate,
                   "trained_fp32": _evaluate(model_cpu, reference).aggregate,
                   "phase1_unconstrained": _evaluate(result.phase1_model.to("cpu").eval(), reference).aggregate}
-        sizes = [(m.shape[2], m.shape[1]) for m in reference.mips]
-        baseline = report.summarise(metrics.mean_baseline(reference), sizes).aggregate
+        baseline = report.summarise(metrics.mean_baseline(reference), _mip_sizes(reference)).aggregate
         jittered = _evaluate(exported.model, reference, JITTER_SEED)
         evaluation_s = time.perf_counter() - t0
 
@@ -130,16 +131,6 @@ def _device_name(device: str) -> str:
     if device == "cuda":
         return f"cuda ({torch.cuda.get_device_name()})"
     return f"cpu ({os.cpu_count()} cores, {torch.get_num_threads()} torch threads)"
-
-
-def read_report(folder: Path) -> report.Report:
-    path = Path(folder) / REPORT_FILE
-    if not path.is_file():
-        raise export.ExportError(f"{path}: missing")
-    try:
-        return report.Report.model_validate_json(path.read_text())
-    except ValueError as exc:
-        raise export.ExportError(f"{path}: not a bcf report: {str(exc).splitlines()[0]}") from None
 
 
 # ------------------------------------------------------------------------------------------------ decode

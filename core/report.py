@@ -7,16 +7,23 @@ which evaluate the training-time models to show what export costs (paper Fig. 8)
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from typing import Optional
 
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, ValidationError
 
 from bcf.core.material import MaterialSource
 from bcf.core.metrics import MipScores, psnr_from_mse
 from bcf.core.options import ResolvedOptions
 
-__all__ = ["Aggregate", "Evaluation", "MipMetrics", "Report", "SizeReport", "TextureScores", "TimingReport",
-           "bc1_bc5_bytes", "format_report", "summarise"]
+__all__ = ["REPORT_FILE", "Aggregate", "Evaluation", "MipMetrics", "Report", "ReportError", "SizeReport",
+           "TextureScores", "TimingReport", "bc1_bc5_bytes", "format_report", "read_report", "summarise"]
+
+REPORT_FILE = "report.json"
+
+
+class ReportError(ValueError):
+    """A report.json that is missing or is not a bcf report; the message names the file."""
 
 
 class _Model(BaseModel):
@@ -143,3 +150,17 @@ def format_report(report: Report, title: Optional[str] = None) -> str:
     lines.append(f"time: phase 1 {t.phase1_s:.1f} s, phase 2 {t.phase2_s:.1f} s, export {t.export_s:.1f} s, "
                  f"evaluation {t.evaluation_s:.1f} s, total {t.total_s:.1f} s on {report.device}")
     return "\n".join(lines)
+
+
+def read_report(path: Path) -> Report:
+    """Read a report.json, given as the file or as the 'bcf compress' folder holding it."""
+    path = Path(path)
+    file = path / REPORT_FILE if path.is_dir() else path
+    if not file.is_file():
+        raise ReportError(f"{file}: no such file")
+    try:
+        return Report.model_validate_json(file.read_bytes())
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(p) for p in first["loc"]) or "(top level)"
+        raise ReportError(f"{file}: not a bcf report ({where}: {first['msg']})") from None

@@ -105,9 +105,9 @@ def test_incomparable_baselines_are_errors(case: str, export_folder: Path, tmp_p
 
 
 def test_check_reads_exactly_the_scores_in_the_report(export_folder: Path, tmp_path: Path) -> None:
-    from bcf.core import check
+    from bcf.core import check, report as report_io
 
-    report = check.load_report_file(export_folder)
+    report = report_io.read_report(export_folder)
     rows = check.compare_reports(report, report, 0.25)
     per_mip = [r for r in rows if r.mip is not None]
     assert len(per_mip) == 4 * len(report.per_mip) and len(rows) == len(per_mip) + 4
