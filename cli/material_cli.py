@@ -22,6 +22,8 @@ COMMANDS = {
     "compress": "compress a PBR material (albedo, normal, ARM) into BC6H neural features + decoder weights",
     "decode": "reconstruct albedo / normal / ARM images from a compressed material folder",
     "info": "describe a compressed material folder (sizes, textures, decoder, quality)",
+    "bench": "benchmark: compress every material of a folder at several feature sizes with the BC/ASTC baselines "
+             "and write a Table 2-style summary",
     "check": "regression gate: compare a report.json with a stored baseline per mip and texture (exit 1 if worse)",
 }
 ROLE_OPTIONS = ("albedo", "normal", "arm", "ao", "roughness", "metalness")
@@ -60,6 +62,10 @@ def add_commands(commands: argparse._SubParsersAction, user_error: type[Exceptio
     training.add_argument("--phase1-iterations", type=non_negative_int, metavar="N")
     training.add_argument("--phase2-iterations", type=non_negative_int, metavar="N")
     training.add_argument("--batch-size", type=positive_int, metavar="N", help="samples per iteration")
+    p.add_argument("--baselines", nargs="?", const="all", metavar="LIST",
+                   help="also encode and score conventional codecs into report.json/report.html and "
+                        "OUT/baselines/: all (the default when no LIST is given), or a comma-separated list of "
+                        "bc, astc, naive and names such as bc1_bc5_full, astc_12x12_half, naive_bc6")
     p.add_argument("--force", action="store_true", help="replace OUT if it exists and is not empty")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress display")
     p.set_defaults(handler=functools.partial(guard, handler=_compress))
@@ -80,6 +86,25 @@ def add_commands(commands: argparse._SubParsersAction, user_error: type[Exceptio
     p.add_argument("folder", metavar="OUT", help="a folder written by 'bcf compress'")
     p.set_defaults(handler=functools.partial(guard, handler=_info))
 
+    p = commands.add_parser("bench", help=COMMANDS["bench"], description=COMMANDS["bench"] + ".",
+                            epilog="Writes DIR/<material>/<features>/ (bcf compress folders), DIR/bench.md, bench.csv, "
+                                   "bench.json and bench.png. Finished materials are kept when run again with the "
+                                   "same options, so an interrupted benchmark continues.")
+    p.add_argument("materials", metavar="MATERIALS_DIR",
+                   help="folder of material folders (with an index.json naming the roles, or found by file names)")
+    p.add_argument("-o", "--output", metavar="DIR", required=True, help="output folder (created)")
+    p.add_argument("--preset", choices=("fast", "default", "paper"), default="default")
+    p.add_argument("--features", default="0.5k,1k,2k", metavar="LIST",
+                   help="comma-separated feature sizes (default: 0.5k,1k,2k)")
+    p.add_argument("--baselines", default="all", metavar="LIST",
+                   help="baselines as for 'bcf compress --baselines', or none (default: all)")
+    p.add_argument("--max-size", type=positive_int, metavar="N",
+                   help="box-filter larger materials down to at most N texels a side first (quicker benchmarks)")
+    p.add_argument("--only", metavar="LIST", help="comma-separated material names (default: all)")
+    p.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress display")
+    p.set_defaults(handler=functools.partial(guard, handler=_bench))
+
     p = commands.add_parser("check", help=COMMANDS["check"], description=COMMANDS["check"] + ".",
                             epilog="Exit codes: 0 nothing got worse, 1 some PSNR dropped by more than the tolerance, "
                                    "2 the reports cannot be compared (malformed, other material, other preset, other "
@@ -95,12 +120,12 @@ def add_commands(commands: argparse._SubParsersAction, user_error: type[Exceptio
 
 def _guarded(args: argparse.Namespace, handler: Callable[[argparse.Namespace], int],
              user_error: type[Exception]) -> int:
-    from bcf.core import check, compress, export, report, training  # torch: only when a command runs
+    from bcf.core import bench, check, compress, export, report, training  # torch: only when a command runs
 
     try:
         return handler(args)
     except (material_io.MaterialError, export.ExportError, compress.OutputExistsError,
-            training.DeviceUnavailableError, check.CheckError, report.ReportError) as exc:
+            training.DeviceUnavailableError, check.CheckError, report.ReportError, bench.BenchError) as exc:
         raise user_error(str(exc)) from None
 
 
@@ -170,11 +195,16 @@ def _describe(texture_set: material_io.TextureSet) -> list[str]:
 
 
 def _compress(args: argparse.Namespace) -> int:
+    from bcf.core import baselines as codecs
     from bcf.core import compress, report
     from bcf.core.options import CompressOptions, resolve_options
 
     if args.material is None and args.albedo is None:
         raise material_io.MaterialError("give a MATERIAL_DIR or the texture files (--albedo, --normal, --arm ...)")
+    try:
+        baselines = [] if args.baselines is None else codecs.parse_baselines(args.baselines)
+    except ValueError as exc:
+        raise material_io.MaterialError(f"--baselines: {exc}") from None
     output = Path(args.output)
     compress.check_output(output, args.force)
     texture_set = material_io.load_material(Path(args.material) if args.material else None, _explicit_files(args))
@@ -191,7 +221,8 @@ def _compress(args: argparse.Namespace) -> int:
          f"of {resolved.batch_size} samples on {resolved.device}")
     display = None if args.quiet else ProgressDisplay()
     try:
-        result = compress.compress_material(texture_set, resolved, output, progress=display, overwrite=args.force)
+        result = compress.compress_material(texture_set, resolved, output, progress=display, overwrite=args.force,
+                                            baselines=baselines, note=None if args.quiet else _say)
     except KeyboardInterrupt:
         if display:
             display.close()
@@ -239,6 +270,42 @@ def _info(args: argparse.Namespace) -> int:
     else:
         lines.append("no report.json")
     _say("\n".join(lines))
+    return 0
+
+
+def _bench(args: argparse.Namespace) -> int:
+    from bcf.core import baselines as codecs
+    from bcf.core import bench
+
+    sizes = [f.strip() for f in args.features.split(",")]
+    bad = [f for f in sizes if f not in ("0.5k", "1k", "2k")]
+    if bad or not sizes:
+        raise bench.BenchError(f"--features: unknown size {', '.join(bad)}; use 0.5k, 1k, 2k")
+    try:
+        baselines = [] if args.baselines == "none" else codecs.parse_baselines(args.baselines)
+    except ValueError as exc:
+        raise bench.BenchError(f"--baselines: {exc}") from None
+    only = [m.strip() for m in args.only.split(",")] if args.only else None
+    output = Path(args.output)
+    display = None if args.quiet else ProgressDisplay()
+    started = time.perf_counter()
+    try:
+        reports = bench.run_bench(Path(args.materials), output, args.preset, sizes, baselines, args.max_size, only,
+                                  args.device, note=None if args.quiet else _say, progress=display)
+    except KeyboardInterrupt:
+        if display:
+            display.close()
+        print(f"bcf: interrupted; finished materials are kept in {output}", file=sys.stderr)
+        raise SystemExit(130) from None
+    finally:
+        if display:
+            display.close()
+    scale = f", materials box-filtered to at most {args.max_size} texels a side" if args.max_size else ""
+    header = (f"# bcf bench: {len(reports)} materials from {Path(args.materials).name}, preset {args.preset}"
+              f"{scale}")
+    paths = bench.write_bench_outputs(output, reports, header)
+    _say((output / "bench.md").read_text())
+    _say(f"wrote {', '.join(str(p) for p in paths)} in {time.perf_counter() - started:.0f} s")
     return 0
 
 

@@ -14,20 +14,27 @@ import time
 from pathlib import Path
 from typing import Callable, Literal, Optional, Sequence
 
-import numpy as np
 import torch
 
 from bcf import __version__
-from bcf.core import export, images, metrics, report
+from bcf.core import baselines as baseline_codecs
+from bcf.core import export, html_report, images, metrics, report
+from bcf.core import material as material_io
 from bcf.core.material import TextureSet
 from bcf.core.options import CompressOptions, ResolvedOptions, resolve_options
 from bcf.core.sampling import ReferenceMaterial, material_mip_count
-from bcf.core.training import ProgressCallback, StopCallback, fit
+from bcf.core.training import FitResult, ProgressCallback, StopCallback, fit
 
-__all__ = ["OutputExistsError", "compress_material", "decode_export", "decoded_file_names"]
+__all__ = ["BASELINES_FOLDER", "OutputExistsError", "compress_material", "decode_export", "decoded_file_names"]
 
 REPORT_FILE = report.REPORT_FILE
+BASELINES_FOLDER = "baselines"  # OUT/baselines/<name>/: the baseline codecs' texture files
 JITTER_SEED = 12345  # fixed, so reports of the same export are identical
+CROP_TEXELS = (128, 64)  # sides of the report.html crops at mip 0 and at the middle mip
+# Methods shown in the report.html crops beside ours (when they were run): the usual BC set at both sizes,
+# ASTC at about our size, and what our phase 2 improves on.
+CROP_BASELINES = ("bc1_bc5_full", "bc1_bc5_half", "astc_12x12_full", "astc_8x8_full", "naive_bc6")
+NoteCallback = Callable[[str], None]
 
 
 class OutputExistsError(ValueError):
@@ -68,11 +75,18 @@ def _folder_bytes(folder: Path) -> int:
 
 def compress_material(material: TextureSet, options: CompressOptions | ResolvedOptions, output: Path,
                       progress: Optional[ProgressCallback] = None, should_stop: Optional[StopCallback] = None,
-                      overwrite: bool = False) -> report.Report:
-    """Fit, export to `output` (features_*.dds, decoder.bin, manifest.json, report.json) and evaluate the
-    exported files. Work happens in a hidden sibling folder that replaces `output` only when complete, so an
+                      overwrite: bool = False, baselines: Sequence[str] = (),
+                      note: Optional[NoteCallback] = None) -> report.Report:
+    """Fit, export to `output` (features_*.dds, decoder.bin, manifest.json, report.json, report.html) and
+    evaluate the exported files. `baselines` (names from `baselines.BASELINES`) are encoded, scored the same
+    way into `report.baselines` and written under output/baselines/<name>/; `note` receives a line per stage
+    after training. Work happens in a hidden sibling folder that replaces `output` only when complete, so an
     error or a stop (training.TrainingStopped, KeyboardInterrupt) leaves `output` as it was."""
     started = time.perf_counter()
+    unknown = [name for name in baselines if name not in baseline_codecs.BASELINES]
+    if unknown:
+        raise ValueError(f"unknown baselines {unknown}; known: {', '.join(baseline_codecs.BASELINES)}")
+    say = note or (lambda message: None)
     resolved = options if isinstance(options, ResolvedOptions) else resolve_options(options)
     output = Path(output)
     check_output(output, overwrite)
@@ -86,6 +100,7 @@ def compress_material(material: TextureSet, options: CompressOptions | ResolvedO
         export.write_export(staged, result.model, material.source, mips, resolved)
         export_s = time.perf_counter() - t0
 
+        say("evaluating the exported files")
         t0 = time.perf_counter()
         exported = export.load_export(staged)
         reference = ReferenceMaterial(material.channels, resolved.address)
@@ -101,6 +116,12 @@ def compress_material(material: TextureSet, options: CompressOptions | ResolvedO
         manifest = exported.manifest
         features_bytes = sum(t.bytes for t in manifest.feature_textures)
         total = features_bytes + manifest.decoder.bytes
+        decoders: dict[str, metrics.Decoder] = {"ours": exported.model}
+        baseline_reports = {}
+        for name in baselines:
+            say(f"baseline {name}: encoding and scoring")
+            baseline_reports[name], decoders[name] = _run_baseline(name, material, reference, result, total,
+                                                                   staged / BASELINES_FOLDER / name)
         rep = report.Report(
             generator=f"bcf {__version__}",
             created_at=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
@@ -113,8 +134,12 @@ def compress_material(material: TextureSet, options: CompressOptions | ResolvedO
                                    bc1_bc5_bytes=report.bc1_bc5_bytes(material.width, material.height)),
             timing=report.TimingReport(phase1_s=result.phase1_s, transition_s=result.transition_s,
                                        phase2_s=result.phase2_s, export_s=export_s, evaluation_s=evaluation_s,
-                                       total_s=time.perf_counter() - started),
-            history=[report.HistoryEntry(**vars(h)) for h in result.history])
+                                       total_s=0.0),
+            history=[report.HistoryEntry(**vars(h)) for h in result.history], baselines=baseline_reports)
+        say("writing report.html")
+        crops = _crops(reference, {k: v for k, v in decoders.items() if k == "ours" or k in CROP_BASELINES})
+        rep.timing.total_s = time.perf_counter() - started
+        html_report.write_html_report(staged / html_report.HTML_REPORT_FILE, rep, crops)
         # files_bytes counts report.json itself: write once to measure, then with the final number.
         (staged / REPORT_FILE).write_text(rep.model_dump_json(indent=2) + "\n")
         while rep.size.files_bytes != _folder_bytes(staged):  # settles in 1-2 rounds (digit count changes)
@@ -125,6 +150,50 @@ def compress_material(material: TextureSet, options: CompressOptions | ResolvedO
         shutil.rmtree(staged, ignore_errors=True)
         raise
     return rep
+
+
+def _run_baseline(name: str, material: TextureSet, reference: ReferenceMaterial, result: FitResult,
+                  our_bytes: int, folder: Path) -> tuple[report.BaselineReport, metrics.Decoder]:
+    """One baseline's scores and decoder; naive_bc6 is the fit's transition snapshot, the same size as ours."""
+    if name != "naive_bc6":
+        return baseline_codecs.run_codec_baseline(name, material.channels, reference, folder)
+    naive = result.naive_model.to("cpu").eval()
+    scored = baseline_codecs.evaluate_baseline(
+        "our phase-1 features put in BC6H blocks by the partition search after training, no phase 2 "
+        "(paper Fig. 4)", "bcf partition search", material.width, material.height, naive, our_bytes,
+        result.transition_s, reference)
+    return scored, naive
+
+
+def _detail_window(mip: torch.Tensor, size: int) -> tuple[int, int]:
+    """(x, y) of the size x size window, on a grid of half-overlapping windows, with the most variance
+    over the 8 channels: crops should show detail, not a flat patch."""
+    _, h, w = mip.shape
+    step = max(1, size // 2)
+    best, where = -1.0, (0, 0)
+    for y in range(0, h - size + 1, step):  # a few dozen windows at most
+        row = mip[:, y:y + size].unfold(2, size, step)  # (C, size, windows, size)
+        variance = row.var(dim=(1, 3)).sum(0)
+        index = int(torch.argmax(variance))
+        if float(variance[index]) > best:
+            best, where = float(variance[index]), (index * step, y)
+    return where
+
+
+def _crops(reference: ReferenceMaterial, decoders: dict[str, metrics.Decoder]) -> list[html_report.Crop]:
+    """Crops of mip 0 and the middle mip for report.html: reference and every decoder at the texel centres."""
+    crops = []
+    for level, side in zip((0, reference.levels // 2), CROP_TEXELS):
+        mip = reference.mip(level)
+        _, h, w = mip.shape
+        size = min(side, w, h)
+        x, y = _detail_window(mip, size)
+        methods = {name: metrics.render_region(decoder, w, h, float(level), x, y, size).clamp(0.0, 1.0)
+                   .permute(1, 2, 0).numpy() for name, decoder in decoders.items()}
+        crops.append(html_report.Crop(mip=level, x=x, y=y, size=size,
+                                      reference=mip[:, y:y + size, x:x + size].permute(1, 2, 0).numpy(),
+                                      methods=methods))
+    return crops
 
 
 def _device_name(device: str) -> str:
@@ -140,15 +209,6 @@ def decoded_file_names(mip: int, extension: str) -> dict[str, str]:
     """Names `decode_export` writes for one mip: albedo.png, ... for mip 0; albedo_mip<N>.png, ... else."""
     suffix = "" if mip == 0 else f"_mip{mip}"
     return {name: f"{name}{suffix}{extension}" for name in ("albedo", "normal", "arm")}
-
-
-def material_images(channels: np.ndarray) -> dict[str, np.ndarray]:
-    """(h, w, 8) decoded material -> albedo, normal (z rebuilt), ARM as (h, w, 3) images in [0, 1]."""
-    channels = np.clip(channels, 0.0, 1.0)
-    xy = channels[..., 3:5] * 2.0 - 1.0
-    z = np.sqrt(np.clip(1.0 - (xy**2).sum(-1, keepdims=True), 0.0, 1.0))
-    return {"albedo": channels[..., 0:3], "normal": np.concatenate([channels[..., 3:5], (z + 1.0) / 2.0], -1),
-            "arm": channels[..., 5:8]}
 
 
 def decode_export(folder: Path, output: Path, mips: Sequence[int], extension: Literal[".png", ".exr"] = ".png",
@@ -167,7 +227,7 @@ def decode_export(folder: Path, output: Path, mips: Sequence[int], extension: Li
     for mip in mips:
         w, h = max(1, manifest.width >> mip), max(1, manifest.height >> mip)
         channels = metrics.render_mip(exported.model, w, h, float(mip)).permute(1, 2, 0).numpy()
-        for name, image in material_images(channels).items():
+        for name, image in material_io.material_images(channels).items():
             path = output / decoded_file_names(mip, extension)[name]
             images.write_rgb(path, image, png_bits)
             written.append(path)

@@ -1,4 +1,5 @@
-"""DDS and KTX2 containers for mipmapped BC6H textures.
+"""DDS and KTX2 containers for mipmapped BC6H textures (and, for the baseline codecs, DDS files of other
+block formats via `write_dds_blocks` and Arm `.astc` files via `write_astc`).
 
 A texture is a chain of mip levels; level ``i`` is ``max(1, w >> i)`` by ``max(1, h >> i)`` texels, stored
 as ``ceil(h_i / 4) x ceil(w_i / 4)`` BC6H blocks of 16 bytes, row-major (partial blocks at the right and bottom
@@ -35,7 +36,7 @@ from dataclasses import dataclass
 from itertools import accumulate
 from os import PathLike
 from pathlib import Path
-from typing import Union
+from typing import Sequence, Union
 
 import numpy as np
 
@@ -47,7 +48,9 @@ __all__ = [
     "read_dds",
     "read_ktx2",
     "read_texture",
+    "write_astc",
     "write_dds",
+    "write_dds_blocks",
     "write_ktx2",
 ]
 
@@ -76,6 +79,8 @@ DDSCAPS_MIPMAP = 0x400000
 DDSCAPS2_CUBEMAP = 0x200
 DDSCAPS2_VOLUME = 0x200000
 FOURCC_DX10 = b"DX10"
+DXGI_FORMAT_BC1_UNORM = 71
+DXGI_FORMAT_BC5_UNORM = 83
 DXGI_FORMAT_BC6H_UF16 = 95
 DXGI_FORMAT_BC6H_SF16 = 96
 D3D10_RESOURCE_DIMENSION_TEXTURE2D = 3
@@ -100,6 +105,7 @@ FLOAT_BITS_0 = 0x00000000
 FLOAT_BITS_1 = 0x3F800000
 FLOAT_BITS_MINUS_1 = 0xBF800000
 KTX_WRITER = "bcf"
+ASTC_MAGIC = bytes([0x13, 0xAB, 0xA1, 0x5C])  # the .astc file identifier
 
 
 class ContainerError(ValueError):
@@ -220,20 +226,36 @@ def _check_texture_size(path: StrPath, width: int, height: int, levels: int) -> 
 
 def write_dds(path: StrPath, texture: BC6HTexture) -> None:
     """Write `texture` as a DDS file with the DX10 extension header, levels largest first."""
-    count = len(texture.levels)
+    dxgi = DXGI_FORMAT_BC6H_SF16 if texture.signed else DXGI_FORMAT_BC6H_UF16
+    write_dds_blocks(path, texture.width, texture.height, dxgi,
+                     [np.ascontiguousarray(level).tobytes() for level in texture.levels])
+
+
+def write_dds_blocks(path: StrPath, width: int, height: int, dxgi_format: int, levels: Sequence[bytes]) -> None:
+    """Write a DDS file (DX10 header) of any 4x4 block-compressed DXGI format from each level's blocks, largest
+    level first. Also used for the BC1/BC5 baselines (DXGI_FORMAT_BC1_UNORM, DXGI_FORMAT_BC5_UNORM)."""
+    count = len(levels)
     flags = DDSD_CAPS | DDSD_HEIGHT | DDSD_WIDTH | DDSD_PIXELFORMAT | DDSD_MIPMAPCOUNT | DDSD_LINEARSIZE
     caps = DDSCAPS_TEXTURE | (DDSCAPS_COMPLEX | DDSCAPS_MIPMAP if count > 1 else 0)
     pixel_format = struct.pack("<II4s5I", DDS_PIXELFORMAT_SIZE, DDPF_FOURCC, FOURCC_DX10, 0, 0, 0, 0, 0)
     header = struct.pack(
         "<7I44x32s5I",
-        DDS_HEADER_SIZE, flags, texture.height, texture.width,
-        _level_nbytes(texture.width, texture.height, 0),  # linear size: bytes of the top level
+        DDS_HEADER_SIZE, flags, height, width,
+        len(levels[0]),  # linear size: bytes of the top level
         0, count, pixel_format, caps, 0, 0, 0, 0,
     )
-    dxgi = DXGI_FORMAT_BC6H_SF16 if texture.signed else DXGI_FORMAT_BC6H_UF16
-    dx10 = struct.pack("<5I", dxgi, D3D10_RESOURCE_DIMENSION_TEXTURE2D, 0, 1, 0)
-    body = b"".join(np.ascontiguousarray(level).tobytes() for level in texture.levels)
-    Path(path).write_bytes(DDS_MAGIC + header + dx10 + body)
+    dx10 = struct.pack("<5I", dxgi_format, D3D10_RESOURCE_DIMENSION_TEXTURE2D, 0, 1, 0)
+    Path(path).write_bytes(DDS_MAGIC + header + dx10 + b"".join(levels))
+
+
+def write_astc(path: StrPath, width: int, height: int, block: tuple[int, int], data: bytes) -> None:
+    """Write one ASTC image (one mip) as an Arm `.astc` file: a 16-byte header (magic 13 AB A1 5C, block
+    x, y, z as bytes, then width, height, depth as 24-bit little-endian) followed by the blocks, row-major."""
+    def u24(value: int) -> bytes:
+        return value.to_bytes(3, "little")
+
+    header = ASTC_MAGIC + bytes([block[0], block[1], 1]) + u24(width) + u24(height) + u24(1)
+    Path(path).write_bytes(header + data)
 
 
 def read_dds(path: StrPath) -> BC6HTexture:

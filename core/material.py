@@ -33,7 +33,7 @@ from .images import ImageReadError, read_image
 __all__ = [
     "CHANNELS", "IMAGE_EXTENSIONS", "TEXTURES", "MaterialError", "MaterialFiles", "MaterialSource",
     "NormalConvention", "Role", "SourceFile", "TextureSet", "discover_material", "load_material",
-    "load_texture_set", "resolve_material",
+    "load_texture_set", "material_images", "resolve_material",
 ]
 
 Role = Literal["albedo", "normal", "arm", "ao", "roughness", "metalness"]
@@ -588,3 +588,12 @@ def load_material(directory: Path | None, explicit: MaterialFiles | None = None)
     """`resolve_material` then `load_texture_set`; the material is named after `directory` when given."""
     files = resolve_material(None if directory is None else Path(directory), explicit or MaterialFiles())
     return load_texture_set(files, name=None if directory is None else Path(directory).resolve().name)
+
+
+def material_images(channels: np.ndarray) -> dict[str, np.ndarray]:
+    """(h, w, 8) decoded material -> albedo, normal (z rebuilt), ARM as (h, w, 3) images in [0, 1]."""
+    channels = np.clip(channels, 0.0, 1.0)
+    xy = channels[..., 3:5] * 2.0 - 1.0
+    z = np.sqrt(np.clip(1.0 - (xy**2).sum(-1, keepdims=True), 0.0, 1.0))
+    return {"albedo": channels[..., 0:3], "normal": np.concatenate([channels[..., 3:5], (z + 1.0) / 2.0], -1),
+            "arm": channels[..., 5:8]}

@@ -16,7 +16,8 @@ import torch.nn.functional as F
 from bcf.core.material import TEXTURES
 from bcf.core.sampling import ReferenceMaterial, texel_centres
 
-__all__ = ["GROUPS", "MipScores", "evaluate", "mean_baseline", "psnr_from_mse", "render_mip", "ssim"]
+__all__ = ["GROUPS", "MipScores", "evaluate", "mean_baseline", "psnr_from_mse", "render_mip", "render_region",
+           "ssim"]
 
 # Score groups: the three textures and all 8 channels together.
 GROUPS: dict[str, slice] = {**TEXTURES, "all": slice(0, 8)}
@@ -70,6 +71,17 @@ def render_mip(decoder: Decoder, width: int, height: int, s: float,
     parts = [decoder(texel_centres(width, height, slice(y, y + rows), device, jitter), s)
              for y in range(0, height, rows)]
     return torch.cat(parts, dim=0).T.reshape(-1, height, width)
+
+
+@torch.no_grad()
+def render_region(decoder: Decoder, width: int, height: int, s: float, x: int, y: int, size: int) -> torch.Tensor:
+    """Evaluate a decoder at the texel centres of the size x size square at (x, y) of a width x height grid at
+    scale s: -> (C, size, size). For crops of a large mip without rendering all of it."""
+    xs = (torch.arange(x, x + size, dtype=torch.float32) + 0.5) / width
+    ys = (torch.arange(y, y + size, dtype=torch.float32) + 0.5) / height
+    gy, gx = torch.meshgrid(ys, xs, indexing="ij")
+    uv = torch.stack([gx.reshape(-1), gy.reshape(-1)], dim=1)
+    return decoder(uv, s).T.reshape(-1, size, size)
 
 
 def _scores(reference: torch.Tensor, test: torch.Tensor) -> MipScores:

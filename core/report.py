@@ -16,8 +16,9 @@ from bcf.core.material import MaterialSource
 from bcf.core.metrics import MipScores, psnr_from_mse
 from bcf.core.options import ResolvedOptions
 
-__all__ = ["REPORT_FILE", "Aggregate", "Evaluation", "MipMetrics", "Report", "ReportError", "SizeReport",
-           "TextureScores", "TimingReport", "bc1_bc5_bytes", "format_report", "read_report", "summarise"]
+__all__ = ["REPORT_FILE", "Aggregate", "BaselineReport", "Evaluation", "MipMetrics", "Report", "ReportError",
+           "SizeReport", "TextureScores", "TimingReport", "bc1_bc5_bytes", "format_baselines", "format_report",
+           "read_report", "summarise"]
 
 REPORT_FILE = "report.json"
 
@@ -83,6 +84,22 @@ class HistoryEntry(_Model):
     psnr: float  # running training PSNR (random batches), dB
 
 
+class BaselineReport(_Model):
+    """A conventional codec (or the naive BC6 variant of our own features), decoded and scored with the same
+    metric code at the same texel centres of every reference mip as `Report.per_mip`."""
+
+    description: str  # what was encoded how, e.g. "BC1 albedo + ARM, BC5 normal at 1024x1024, mips to 1x1"
+    encoder: str  # library and settings, e.g. "quicktex 0.3.1, level 18"
+    width: int  # resolution of the baseline's top mip (half the material's for the *_half baselines)
+    height: int
+    aggregate: Aggregate
+    per_mip: list[MipMetrics]
+    size_bytes: int  # every block of every mip (down to 1x1 for BC/ASTC), what a renderer keeps in memory
+    bits_per_texel: float  # size_bytes * 8 / (material width * height)
+    encode_s: float
+    evaluation_s: float
+
+
 class Report(_Model):
     generator: str
     created_at: str
@@ -97,6 +114,7 @@ class Report(_Model):
     size: SizeReport
     timing: TimingReport
     history: list[HistoryEntry]
+    baselines: dict[str, BaselineReport] = {}  # `bcf compress --baselines`: name -> scores and size
 
 
 def _scores(values: dict[str, float]) -> TextureScores:
@@ -144,12 +162,26 @@ def format_report(report: Report, title: Optional[str] = None) -> str:
     lines.append(f"1 spp (jittered) PSNR all: {report.jittered.aggregate.psnr.all:.2f} dB; "
                  + ", ".join(f"{k}: {v.psnr.all:.2f} dB" for k, v in report.models.items())
                  + f"; per-channel mean: {report.mean_baseline.psnr.all:.2f} dB")
+    if report.baselines:
+        lines += ["", format_baselines(report)]
     s, t = report.size, report.timing
     lines.append(f"size: {s.total_bytes / 2**20:.3f} MiB ({s.features_bytes:,} B features + {s.weights_bytes:,} B "
                  f"weights, {s.bits_per_texel:.2f} bits/texel); BC1+BC5 at this size: {s.bc1_bc5_bytes / 2**20:.3f} MiB")
     lines.append(f"time: phase 1 {t.phase1_s:.1f} s, phase 2 {t.phase2_s:.1f} s, export {t.export_s:.1f} s, "
                  f"evaluation {t.evaluation_s:.1f} s, total {t.total_s:.1f} s on {report.device}")
     return "\n".join(lines)
+
+
+def format_baselines(report: Report) -> str:
+    """Ours and every baseline, smallest first: aggregate PSNR per texture, SSIM, size."""
+    names = ["albedo", "normal", "arm", "all"]
+    entries = [("ours", report.aggregate, report.size.total_bytes, report.size.bits_per_texel)]
+    entries += [(k, b.aggregate, b.size_bytes, b.bits_per_texel) for k, b in report.baselines.items()]
+    header = ["method"] + [f"PSNR {n}" for n in names] + ["SSIM all", "MiB", "bits/texel"]
+    rows = [[name] + [f"{getattr(a.psnr, n):.2f}" for n in names] + [f"{a.ssim.all:.4f}", f"{size / 2**20:.3f}",
+            f"{bits:.2f}"] for name, a, size, bits in sorted(entries, key=lambda e: (e[2], e[0]))]
+    widths = [max(len(r[i]) for r in rows + [header]) for i in range(len(header))]
+    return "\n".join([_row(header, widths)] + [_row(r, widths) for r in rows])
 
 
 def read_report(path: Path) -> Report:

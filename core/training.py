@@ -59,6 +59,7 @@ class TrainingStopped(Exception):
 class FitResult:
     model: NeuralMaterial  # phase-2 model with BlockFeatures (or phase 1's if phase 2 has 0 iterations)
     phase1_model: NeuralMaterial  # snapshot at the end of phase 1 (unconstrained features)
+    naive_model: NeuralMaterial  # phase 1's features put in blocks by the partition search, before phase 2
     specs: tuple[FeatureTextureSpec, ...]
     phase1_s: float
     transition_s: float
@@ -158,6 +159,7 @@ def fit(material: TextureSet, options: ResolvedOptions, progress: Optional[Progr
     blocks = to_block_features(free, decoder, options.block_mode)
     model = NeuralMaterial(blocks, decoder, options.address)
     transition_s = time.perf_counter() - t0
+    naive_model = copy.deepcopy(model)  # the "naive BC6" baseline of Fig. 4: compressed after training
     if checkpoint is not None:
         checkpoint(2, 0, model)
 
@@ -166,4 +168,4 @@ def fit(material: TextureSet, options: ResolvedOptions, progress: Optional[Progr
                  options.lr_mlp_phase2, options.decay_phase2, generator, scale_generator, start, history, progress,
                  should_stop, checkpoint, checkpoint_every)
     phase2_s = time.perf_counter() - t0
-    return FitResult(model, phase1_model, specs, phase1_s, transition_s, phase2_s, history)
+    return FitResult(model, phase1_model, naive_model, specs, phase1_s, transition_s, phase2_s, history)

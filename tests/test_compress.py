@@ -24,7 +24,7 @@ import OpenImageIO as oiio
 import pytest
 import torch
 
-from bcf.core import bc6h, compress, containers, export, training
+from bcf.core import bc6h, compress, containers, export, html_report, training
 from bcf.core.material import TextureSet, load_material
 from bcf.core.options import CompressOptions, resolve_options
 from bcf.core.report import Report, read_report
@@ -251,7 +251,8 @@ def test_report_has_every_field_and_true_sizes(which: str, request: pytest.Fixtu
     compressed: Compressed = request.getfixturevalue(which)
     folder, data, manifest = compressed.folder, compressed.json, compressed.manifest
     assert sorted(p.name for p in folder.iterdir()) == sorted(
-        [export.feature_file(i) for i in range(4)] + [export.DECODER_FILE, export.MANIFEST_FILE, compress.REPORT_FILE])
+        [export.feature_file(i) for i in range(4)] + [export.DECODER_FILE, export.MANIFEST_FILE, compress.REPORT_FILE,
+                                                    html_report.HTML_REPORT_FILE])
     for key in REQUIRED_KEYS:
         value = dig(data, key)
         assert isinstance(value, (int, float)) and math.isfinite(value), (key, value)
@@ -508,7 +509,8 @@ def test_existing_output_needs_force(sample_dir: Path, tmp_path: Path) -> None:
     result = run_bcf("compress", sample_dir, "-o", output, *CLI_TINY, "-q", "--force")
     assert result.returncode == 0, result.stderr
     assert sorted(p.name for p in output.iterdir()) == sorted(
-        [export.feature_file(i) for i in range(4)] + [export.DECODER_FILE, export.MANIFEST_FILE, compress.REPORT_FILE])
+        [export.feature_file(i) for i in range(4)] + [export.DECODER_FILE, export.MANIFEST_FILE, compress.REPORT_FILE,
+                                                    html_report.HTML_REPORT_FILE])
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no .out.old-* or .out.partial-* left
     export.load_export(output)
 

@@ -249,7 +249,7 @@ def test_python_reference_in_the_document_matches_bcf_decode(export: Export) -> 
 
 def test_folder_dds_files_and_manifest_follow_the_document(export: Export) -> None:
     folder = export.folder
-    assert {p.name for p in folder.iterdir()} == RENDER_FILES | {"report.json"}
+    assert {p.name for p in folder.iterdir()} == RENDER_FILES | {"report.json", "report.html"}
     m = json.loads((folder / "manifest.json").read_text())
     assert (m["format"], m["format_version"]) == ("bcf-neural-material", 1)
     W, H = m["width"], m["height"]
