@@ -11,12 +11,14 @@ import functools
 import sys
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, TextIO
+from typing import TYPE_CHECKING, Callable, TextIO, TypeVar
 
 from bcf.core import material as material_io
 
 if TYPE_CHECKING:
     from bcf.core.training import TrainingProgress
+
+T = TypeVar("T")
 
 COMMANDS = {
     "compress": "compress a PBR material (albedo, normal, ARM) into BC6H neural features + decoder weights",
@@ -170,6 +172,22 @@ class ProgressDisplay:
             self.open = False
 
 
+def _with_progress(quiet: bool, after_interrupt: str, work: Callable[[ProgressDisplay | None], T]) -> T:
+    """Run `work` with a progress display (none if `quiet`); Ctrl-C ends the command with exit code 130 and a
+    line saying what was kept."""
+    display = None if quiet else ProgressDisplay()
+    try:
+        return work(display)
+    except KeyboardInterrupt:
+        if display:
+            display.close()
+        print(f"bcf: interrupted; {after_interrupt}", file=sys.stderr)
+        raise SystemExit(130) from None
+    finally:
+        if display:
+            display.close()
+
+
 def _duration(seconds: float) -> str:
     seconds = int(round(seconds))
     return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
@@ -219,18 +237,9 @@ def _compress(args: argparse.Namespace) -> int:
     _say(f"training: preset {resolved.preset}, features {resolved.features}, BC6H mode {resolved.block_mode}, "
          f"MLP 12-{resolved.hidden}-8, {resolved.phase1_iterations} + {resolved.phase2_iterations} iterations "
          f"of {resolved.batch_size} samples on {resolved.device}")
-    display = None if args.quiet else ProgressDisplay()
-    try:
-        result = compress.compress_material(texture_set, resolved, output, progress=display, overwrite=args.force,
-                                            baselines=baselines, note=None if args.quiet else _say)
-    except KeyboardInterrupt:
-        if display:
-            display.close()
-        print(f"bcf: interrupted; nothing written to {output}", file=sys.stderr)
-        raise SystemExit(130) from None
-    finally:
-        if display:
-            display.close()
+    result = _with_progress(args.quiet, f"nothing written to {output}", lambda display: compress.compress_material(
+        texture_set, resolved, output, progress=display, overwrite=args.force, baselines=baselines,
+        note=None if args.quiet else _say))
     _say(report.format_report(result, f"wrote {output} (report.json):"))
     return 0
 
@@ -287,19 +296,10 @@ def _bench(args: argparse.Namespace) -> int:
         raise bench.BenchError(f"--baselines: {exc}") from None
     only = [m.strip() for m in args.only.split(",")] if args.only else None
     output = Path(args.output)
-    display = None if args.quiet else ProgressDisplay()
     started = time.perf_counter()
-    try:
-        reports = bench.run_bench(Path(args.materials), output, args.preset, sizes, baselines, args.max_size, only,
-                                  args.device, note=None if args.quiet else _say, progress=display)
-    except KeyboardInterrupt:
-        if display:
-            display.close()
-        print(f"bcf: interrupted; finished materials are kept in {output}", file=sys.stderr)
-        raise SystemExit(130) from None
-    finally:
-        if display:
-            display.close()
+    reports = _with_progress(args.quiet, f"finished materials are kept in {output}", lambda display: bench.run_bench(
+        Path(args.materials), output, args.preset, sizes, baselines, args.max_size, only, args.device,
+        note=None if args.quiet else _say, progress=display))
     scale = f", materials box-filtered to at most {args.max_size} texels a side" if args.max_size else ""
     header = (f"# bcf bench: {len(reports)} materials from {Path(args.materials).name}, preset {args.preset}"
               f"{scale}")
