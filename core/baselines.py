@@ -122,12 +122,18 @@ def _bc_encode_level(image: np.ndarray, bc5: bool) -> tuple[bytes, np.ndarray]:
     return encoded.tobytes(), decoded.astype(np.float32) / 255.0
 
 
-def _astc_encode_level(image: np.ndarray, block: int) -> tuple[bytes, np.ndarray]:
-    """Encode one mip with astcenc (LDR, thorough): (blocks, decoded (h, w, channels) float32)."""
-    from astc_encoder import ASTCConfig, ASTCContext, ASTCImage, ASTCProfile, ASTCSwizzle, ASTCType
+def _astc_context(block: int):  # -> astc_encoder.ASTCContext (imported lazily)
+    """One astcenc context (LDR, thorough) per baseline: creating one is expensive, so mips share it."""
+    from astc_encoder import ASTCConfig, ASTCContext, ASTCProfile
+
+    return ASTCContext(ASTCConfig(ASTCProfile.LDR, block, block, 1, ASTC_QUALITY, 0), torch.get_num_threads())
+
+
+def _astc_encode_level(image: np.ndarray, context) -> tuple[bytes, np.ndarray]:
+    """Encode one mip with an `_astc_context`: (blocks, decoded (h, w, channels) float32)."""
+    from astc_encoder import ASTCImage, ASTCSwizzle, ASTCType
 
     h, w, channels = image.shape
-    context = ASTCContext(ASTCConfig(ASTCProfile.LDR, block, block, 1, ASTC_QUALITY, 0), torch.get_num_threads())
     # RGB1 for colours, RG01 for the normal's x, y; the decoded missing channels are ignored.
     swizzle = ASTCSwizzle.from_str("rgb1" if channels == 3 else "rg01")
     data = context.compress(ASTCImage(ASTCType.U8, w, h, 1, _to_rgba8(image).tobytes()), swizzle)
@@ -156,6 +162,7 @@ def encode_baseline(spec: BaselineSpec, channels: np.ndarray) -> DecodedBaseline
     if spec.half:
         chain = chain[1:]
     decoded = [np.zeros_like(level) for level in chain]
+    context = _astc_context(spec.block) if spec.codec == "astc" else None
     textures = []
     for name, channel_slice in TEXTURES.items():
         levels = []
@@ -164,7 +171,7 @@ def encode_baseline(spec: BaselineSpec, channels: np.ndarray) -> DecodedBaseline
             if spec.codec == "bc1_bc5":
                 blocks, values = _bc_encode_level(image, bc5=name == "normal")
             else:
-                blocks, values = _astc_encode_level(image, spec.block)
+                blocks, values = _astc_encode_level(image, context)
             levels.append(blocks)
             out[..., channel_slice] = values
         textures.append(EncodedTexture(name, channel_slice, levels))

@@ -164,10 +164,13 @@ def _mean_mse(per_mip: Sequence[report.MipMetrics], texture: str) -> float:
     return float(np.mean([getattr(m.mse, texture) for m in per_mip]))
 
 
-def _method_rows(reports: dict[str, dict[str, report.Report]]) -> dict[str, list[tuple[str, list[report.MipMetrics], float, float, int]]]:
+MethodEntry = tuple[str, list[report.MipMetrics], float, float, int]  # material, per_mip, ssim, bits/texel, bytes
+
+
+def _method_rows(reports: dict[str, dict[str, report.Report]]) -> dict[str, list[MethodEntry]]:
     """method -> [(material, per_mip, ssim, bits_per_texel, bytes)] for ours (per feature size) and every baseline
     (naive_bc6 per feature size too)."""
-    rows: dict[str, list] = {}
+    rows: dict[str, list[MethodEntry]] = {}
     for name, by_size in reports.items():
         for size, rep in by_size.items():
             rows.setdefault(f"BCf-{size}", []).append(
