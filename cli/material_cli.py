@@ -294,6 +294,9 @@ def _bench(args: argparse.Namespace) -> int:
         baselines = [] if args.baselines == "none" else codecs.parse_baselines(args.baselines)
     except ValueError as exc:
         raise bench.BenchError(f"--baselines: {exc}") from None
+    if args.max_size is not None and args.max_size < 64:
+        raise bench.BenchError(f"--max-size must be at least 64 (the smallest material bcf compresses), "
+                               f"got {args.max_size}")
     only = [m.strip() for m in args.only.split(",")] if args.only else None
     output = Path(args.output)
     started = time.perf_counter()

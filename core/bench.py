@@ -210,7 +210,8 @@ def _per_material_table(reports: dict[str, dict[str, report.Report]]) -> list[st
 
 def _markdown(summary: Sequence[MethodSummary], reports: dict[str, dict[str, report.Report]],
               header: str) -> str:
-    lines = [header, "", "| method | PSNR (dB) | albedo | normal | ARM | SSIM | MiB per material | bits/texel | materials |",
+    lines = [header, "",
+             "| method | PSNR (dB) | albedo | normal | ARM | SSIM | MiB per material | bits/texel | materials |",
              "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for s in summary:
         lines.append(f"| {s.method} | {s.psnr:.2f} | {s.psnr_albedo:.2f} | {s.psnr_normal:.2f} | {s.psnr_arm:.2f} | "

@@ -109,6 +109,7 @@ def test_user_errors(tmp_path: Path, materials: Path) -> None:
     for args, message in [((tmp_path / "empty",), "no materials found"),
                           ((materials, "--only", "nope"), "no material named nope"),
                           ((materials, "--features", "3k"), "unknown size 3k"),
+                          ((materials, "--max-size", "32"), "--max-size must be at least 64"),
                           ((materials, "--baselines", "etc2"), "unknown baseline 'etc2'")]:
         result = run_bcf("bench", *args, "-o", tmp_path / "out")
         assert result.returncode == 2, (args, result.stderr)
