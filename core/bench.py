@@ -8,8 +8,8 @@ Layout of the output folder::
     DIR/bench.json               the same numbers, machine-readable
     DIR/bench.png                PSNR vs size (Fig. 9)
 
-A material whose folder already holds a report.json made with the same options is not recompressed, so an
-interrupted benchmark continues where it stopped.
+A material whose folder already holds a report.json made from the same input files at the same size with the
+same options is not recompressed, so an interrupted benchmark continues where it stopped.
 """
 
 from __future__ import annotations
@@ -100,13 +100,17 @@ def downscale(texture_set: material.TextureSet, max_size: int) -> material.Textu
 # --------------------------------------------------------------------------------------------------- run
 
 
-def _is_done(folder: Path, options: CompressOptions) -> bool:
-    """A finished earlier run with the same resolved options (and so the same schedule and features)."""
+def _kept_report(folder: Path, options: CompressOptions, source: material.MaterialSource,
+                 baselines: Sequence[str]) -> Optional[report.Report]:
+    """The report of a finished earlier run in `folder` made from the same inputs at the same size (so a
+    different --max-size or a changed file recompresses), with the same resolved options and at least the
+    wanted baselines; else None."""
     try:
         previous = report.read_report(folder)
     except report.ReportError:
-        return False
-    return previous.options == resolve_options(options)
+        return None
+    same = previous.material == source and previous.options == resolve_options(options)
+    return previous if same and set(baselines) <= set(previous.baselines) else None
 
 
 def run_bench(root: Path, output: Path, preset: Preset = "default",
@@ -131,14 +135,15 @@ def run_bench(root: Path, output: Path, preset: Preset = "default",
             folder = Path(output) / entry.name / size
             options = CompressOptions(preset=preset, features=size, address=entry.address, device=device)
             wanted = (codec_baselines if i == 0 else []) + (["naive_bc6"] if "naive_bc6" in baselines else [])
-            if _is_done(folder, options) and set(wanted) <= set(report.read_report(folder).baselines):
+            kept = _kept_report(folder, options, texture_set.source, wanted)
+            if kept is not None:
                 say(f"[{number}/{len(materials)}] {entry.name} {size}: done before, kept")
             else:
                 say(f"[{number}/{len(materials)}] {entry.name} {size}: {texture_set.width}x{texture_set.height}, "
                     f"{entry.address} ({time.perf_counter() - started:.0f} s so far)")
-                compress.compress_material(texture_set, options, folder, progress=progress, overwrite=True,
-                                           baselines=wanted)
-            reports[entry.name][size] = report.read_report(folder)
+                kept = compress.compress_material(texture_set, options, folder, progress=progress, overwrite=True,
+                                                  baselines=wanted)
+            reports[entry.name][size] = kept
     return reports
 
 

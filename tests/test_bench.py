@@ -81,6 +81,19 @@ def test_second_run_keeps_finished_materials(materials: Path, benched: tuple[Pat
     assert {p: p.stat().st_mtime_ns for p in out.glob("*/*/report.json")} == before
 
 
+def test_other_size_or_options_are_not_kept(materials: Path, benched: tuple[Path, str]) -> None:
+    """Resuming keeps a folder only for the same inputs at the same size, the same options and the baselines."""
+    out, _ = benched
+    texture_set = material.load_material(materials / "chainmail")
+    options = bench.CompressOptions(preset="fast", features="1k")
+    same = bench.downscale(texture_set, 64).source
+    assert bench._kept_report(out / "chainmail" / "1k", options, same, ["naive_bc6"]) is not None
+    assert bench._kept_report(out / "chainmail" / "1k", options, texture_set.source, []) is None  # --max-size 128
+    assert bench._kept_report(out / "chainmail" / "1k", options, same, ["bc1_bc5_full"]) is None
+    assert bench._kept_report(out / "chainmail" / "1k", bench.CompressOptions(preset="default", features="1k"),
+                              same, []) is None
+
+
 def test_index_json_names_roles_and_layout(tmp_path: Path) -> None:
     """With an index.json, roles, normal convention and layout come from it (uv-atlas -> clamp addressing)."""
     shutil.copytree(CHAINMAIL, tmp_path / "mail")
