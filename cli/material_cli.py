@@ -215,7 +215,7 @@ def _describe(texture_set: material_io.TextureSet) -> list[str]:
 def _compress(args: argparse.Namespace) -> int:
     from bcf.core import baselines as codecs
     from bcf.core import compress, report
-    from bcf.core.options import CompressOptions, resolve_options
+    from bcf.core.options import JobOptions, resolve_options
 
     if args.material is None and args.albedo is None:
         raise material_io.MaterialError("give a MATERIAL_DIR or the texture files (--albedo, --normal, --arm ...)")
@@ -231,14 +231,14 @@ def _compress(args: argparse.Namespace) -> int:
     for note in texture_set.notes:
         _say(f"  note: {note}")
     overrides = {k: getattr(args, k) for k in SCHEDULE_OPTIONS if getattr(args, k) is not None}
-    options = CompressOptions(preset=args.preset, features=args.features, address=args.address,
-                              device=args.device, seed=args.seed, **overrides)
-    resolved = resolve_options(options)
+    options = JobOptions(preset=args.preset, features=args.features, address=args.address, device=args.device,
+                         seed=args.seed, baselines=baselines, normal_convention=args.normal_convention, **overrides)
+    resolved = resolve_options(options.compress_options())
     _say(f"training: preset {resolved.preset}, features {resolved.features}, BC6H mode {resolved.block_mode}, "
          f"MLP 12-{resolved.hidden}-8, {resolved.phase1_iterations} + {resolved.phase2_iterations} iterations "
          f"of {resolved.batch_size} samples on {resolved.device}")
     result = _with_progress(args.quiet, f"nothing written to {output}", lambda display: compress.compress_material(
-        texture_set, resolved, output, progress=display, overwrite=args.force, baselines=baselines,
+        texture_set, resolved, output, progress=display, overwrite=args.force, baselines=options.baselines,
         note=None if args.quiet else _say))
     _say(report.format_report(result, f"wrote {output} (report.json):"))
     return 0

@@ -33,7 +33,7 @@ from .images import ImageReadError, read_image
 __all__ = [
     "CHANNELS", "IMAGE_EXTENSIONS", "TEXTURES", "MaterialError", "MaterialFiles", "MaterialSource",
     "NormalConvention", "Role", "SourceFile", "TextureSet", "discover_material", "load_material",
-    "load_texture_set", "material_images", "resolve_material",
+    "load_texture_set", "material_images", "normal_convention_from_name", "resolve_material",
 ]
 
 Role = Literal["albedo", "normal", "arm", "ao", "roughness", "metalness"]
@@ -230,6 +230,11 @@ def _convention_from_name(path: Path) -> NormalConvention | None:
     """The normal-map convention `path`'s name states, None when it does not."""
     named = _classify(path)
     return named.convention if named.role == "normal" else None
+
+
+def normal_convention_from_name(name: str) -> NormalConvention | None:
+    """The convention a normal map's file name states (`_nor_gl`, `_NormalDX`, ambientCG's plain `_Normal`, ...)."""
+    return _convention_from_name(Path(name))
 
 
 def _plain_ambientcg_note(path: Path) -> str:

@@ -9,9 +9,9 @@ from __future__ import annotations
 
 from typing import Literal, Optional
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-__all__ = ["PRESETS", "CompressOptions", "ResolvedOptions", "TrainingSchedule", "FEATURE_SCALES",
+__all__ = ["PRESETS", "CompressOptions", "JobOptions", "ResolvedOptions", "TrainingSchedule", "FEATURE_SCALES",
            "resolve_options"]
 
 Preset = Literal["fast", "default", "paper"]
@@ -91,6 +91,31 @@ class CompressOptions(BaseModel):
     decay_phase2: Optional[float] = Field(None, gt=0, le=1)
     hidden: Optional[Literal[16, 32]] = None
     block_mode: Optional[Literal[10, 11]] = None
+
+
+class JobOptions(CompressOptions):
+    """One compression as `bcf compress`, the job queue and `POST /v1/jobs` state it: the training options,
+    the baseline codecs to score beside ours, and the normal map convention when file names do not say it."""
+
+    baselines: list[str] = Field(default_factory=list, description="baseline codecs to score (names from "
+                                 "bcf.core.baselines.BASELINES, or the groups all, bc, astc, naive)")
+    normal_convention: Optional[Literal["opengl", "directx"]] = Field(
+        None, description="green channel convention of the normal map (default: from its file name, else opengl)")
+
+    @field_validator("baselines", mode="before")
+    @classmethod
+    def _known_baselines(cls, value: object) -> object:
+        from bcf.core.baselines import parse_baselines  # imports report, which imports this module
+
+        if isinstance(value, str):
+            value = [value]
+        if isinstance(value, list) and all(isinstance(v, str) for v in value):
+            return parse_baselines(",".join(value)) if value else []
+        return value
+
+    def compress_options(self) -> CompressOptions:
+        """The training part alone."""
+        return CompressOptions(**self.model_dump(exclude={"baselines", "normal_convention"}))
 
 
 class ResolvedOptions(TrainingSchedule):

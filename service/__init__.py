@@ -1,1 +1,1 @@
-"""bcf.service: HTTP API (see the issues tracker; not implemented yet)."""
+"""bcf.service: the HTTP API over bcf.jobs (FastAPI): `app.create_app(settings)`; run by `bcf serve`."""

@@ -1,0 +1,72 @@
+"""Service and worker settings, read from the environment (prefix BCF_) and an optional `.env` file.
+
+One `Settings` object is built per process (`Settings()`) and passed down; nothing reads the environment
+after that, so tests and embedded workers can run with their own settings side by side.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+__all__ = ["Settings"]
+
+
+def _default_data_dir() -> Path:
+    return Path.home() / ".local" / "share" / "bcf"
+
+
+class Settings(BaseSettings):
+    """Every setting of `bcf serve` and `bcf worker`; environment variable = BCF_ + the name in capitals."""
+
+    model_config = SettingsConfigDict(env_prefix="BCF_", env_file=".env", extra="ignore")
+
+    data_dir: Path = Field(default_factory=_default_data_dir,
+                           description="queue and job databases (embedded mode), uploaded inputs, artifacts")
+    api_tokens: Annotated[list[str], NoDecode] = Field(
+        default_factory=list, description="comma-separated bearer tokens; none: the API listens on 127.0.0.1 only")
+    queue_url: Optional[str] = Field(None, description="redis://host:port/db: farm mode with Redis; "
+                                                       "unset: embedded mode with SQLite files in data_dir")
+    max_upload_mb: float = Field(512.0, gt=0, description="largest accepted request body, in MiB")
+    max_unzipped_mb: float = Field(2048.0, gt=0, description="largest total size of a material zip's entries")
+    max_zip_entries: int = Field(64, ge=1, description="most entries a material zip may have")
+    max_attempts: int = Field(3, ge=1, description="runs of a job before a worker death marks it failed")
+    heartbeat_s: float = Field(2.0, gt=0, description="how often a running job's record is refreshed")
+    stale_after_s: float = Field(30.0, gt=0, description="a running job whose record is this old has lost "
+                                                         "its worker and is re-queued")
+
+    @field_validator("api_tokens", mode="before")
+    @classmethod
+    def _split_tokens(cls, value: object) -> object:
+        if isinstance(value, str):
+            return [token.strip() for token in value.split(",") if token.strip()]
+        return value
+
+    @field_validator("queue_url")
+    @classmethod
+    def _redis_only(cls, value: Optional[str]) -> Optional[str]:
+        if value is not None and not value.strip():
+            return None
+        if value is not None and not value.startswith(("redis://", "rediss://", "unix://")):
+            raise ValueError(f"BCF_QUEUE_URL must be a redis://, rediss:// or unix:// URL, got {value!r}")
+        return value
+
+    @property
+    def farm_mode(self) -> bool:
+        return self.queue_url is not None
+
+    @property
+    def inputs_dir(self) -> Path:
+        return self.data_dir / "inputs"
+
+    @property
+    def artifacts_dir(self) -> Path:
+        return self.data_dir / "artifacts"
+
+    @property
+    def uploads_dir(self) -> Path:
+        """Staging for requests being validated; emptied of anything older than a request on start."""
+        return self.data_dir / "uploads"

@@ -1,0 +1,271 @@
+"""Where job records live, readable by the API and every worker: SQLite (embedded) or Redis (farm mode).
+
+Both stores keep each job as its JSON and offer the same five operations. `update` is an atomic
+read-modify-write (an exclusive SQLite transaction; WATCH/MULTI in Redis), which is how state transitions
+stay correct with several workers and the API changing the same job: a change function sees the current
+record and returns the new one, or None to leave it alone.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import sqlite3
+from pathlib import Path
+from typing import Callable, Iterator, Optional, Protocol
+
+from bcf.jobs.records import JOB_STATES, Job, utc_now
+from bcf.jobs.settings import Settings
+
+__all__ = ["JobStore", "RedisJobStore", "SqliteJobStore", "StoreUnavailable", "open_store"]
+
+Change = Callable[[Job], Optional[Job]]
+# Jobs that hold their input key: a new submission with the same key returns them instead of a new job.
+_KEY_HOLDING_STATES = frozenset({"queued", "running", "succeeded"})
+
+
+class StoreUnavailable(RuntimeError):
+    """The job store cannot be reached (Redis down, database locked for too long)."""
+
+
+class JobStore(Protocol):
+    def add(self, job: Job) -> tuple[Job, bool]:
+        """Store `job`, unless a queued, running or succeeded job has its input_key: then (that job, False)."""
+
+    def get(self, job_id: str) -> Optional[Job]: ...
+
+    def update(self, job_id: str, change: Change) -> Optional[Job]:
+        """Atomically apply `change` to the job; returns the job as stored afterwards, None if there is none."""
+
+    def list(self, states: Optional[set[str]] = None, offset: int = 0,
+             limit: Optional[int] = None) -> tuple[list[Job], int]:
+        """(jobs newest first, total matching)."""
+
+    def counts(self) -> dict[str, int]:
+        """Number of jobs in each state (every state present)."""
+
+    def ping(self) -> None:
+        """Raise StoreUnavailable if the store cannot be used."""
+
+
+def _stamped(job: Job) -> Job:
+    return job.model_copy(update={"updated_at": utc_now()})
+
+
+# ------------------------------------------------------------------------------------------------ SQLite
+
+
+class SqliteJobStore:
+    """One table in `path`; a connection per operation, so any thread or process may use it (WAL mode)."""
+
+    def __init__(self, path: Path):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        with self._connect() as db:
+            db.execute("PRAGMA journal_mode=WAL")
+            db.execute("CREATE TABLE IF NOT EXISTS jobs (id TEXT PRIMARY KEY, input_key TEXT NOT NULL, "
+                       "state TEXT NOT NULL, created_at TEXT NOT NULL, data TEXT NOT NULL)")
+            db.execute("CREATE INDEX IF NOT EXISTS jobs_state ON jobs (state, created_at)")
+            db.execute("CREATE INDEX IF NOT EXISTS jobs_key ON jobs (input_key)")
+
+    @contextlib.contextmanager
+    def _connect(self) -> Iterator[sqlite3.Connection]:
+        try:
+            db = sqlite3.connect(self.path, timeout=30.0, isolation_level=None)
+        except sqlite3.Error as exc:
+            raise StoreUnavailable(f"job database {self.path}: {exc}") from exc
+        try:
+            yield db
+        except sqlite3.OperationalError as exc:
+            raise StoreUnavailable(f"job database {self.path}: {exc}") from exc
+        finally:
+            db.close()
+
+    @contextlib.contextmanager
+    def _transaction(self) -> Iterator[sqlite3.Connection]:
+        with self._connect() as db:
+            db.execute("BEGIN IMMEDIATE")  # takes the write lock now: no other writer between read and write
+            try:
+                yield db
+            except BaseException:
+                db.execute("ROLLBACK")
+                raise
+            db.execute("COMMIT")
+
+    def add(self, job: Job) -> tuple[Job, bool]:
+        with self._transaction() as db:
+            holding = ",".join("?" * len(_KEY_HOLDING_STATES))
+            row = db.execute(f"SELECT data FROM jobs WHERE input_key = ? AND state IN ({holding}) "
+                             "ORDER BY created_at DESC LIMIT 1", (job.input_key, *_KEY_HOLDING_STATES)).fetchone()
+            if row is not None:
+                return Job.model_validate_json(row[0]), False
+            db.execute("INSERT INTO jobs (id, input_key, state, created_at, data) VALUES (?, ?, ?, ?, ?)",
+                       (job.id, job.input_key, job.state, job.created_at.isoformat(), job.model_dump_json()))
+            return job, True
+
+    def get(self, job_id: str) -> Optional[Job]:
+        with self._connect() as db:
+            row = db.execute("SELECT data FROM jobs WHERE id = ?", (job_id,)).fetchone()
+        return None if row is None else Job.model_validate_json(row[0])
+
+    def update(self, job_id: str, change: Change) -> Optional[Job]:
+        with self._transaction() as db:
+            row = db.execute("SELECT data FROM jobs WHERE id = ?", (job_id,)).fetchone()
+            if row is None:
+                return None
+            job = Job.model_validate_json(row[0])
+            changed = change(job)
+            if changed is None:
+                return job
+            changed = _stamped(changed)
+            db.execute("UPDATE jobs SET state = ?, data = ? WHERE id = ?",
+                       (changed.state, changed.model_dump_json(), job_id))
+            return changed
+
+    def list(self, states: Optional[set[str]] = None, offset: int = 0,
+             limit: Optional[int] = None) -> tuple[list[Job], int]:
+        wanted = sorted(states) if states else list(JOB_STATES)
+        marks = ",".join("?" * len(wanted))
+        with self._connect() as db:
+            total = db.execute(f"SELECT COUNT(*) FROM jobs WHERE state IN ({marks})", wanted).fetchone()[0]
+            rows = db.execute(f"SELECT data FROM jobs WHERE state IN ({marks}) ORDER BY created_at DESC, id "
+                              "LIMIT ? OFFSET ?", (*wanted, -1 if limit is None else limit, offset)).fetchall()
+        return [Job.model_validate_json(r[0]) for r in rows], total
+
+    def counts(self) -> dict[str, int]:
+        with self._connect() as db:
+            rows = db.execute("SELECT state, COUNT(*) FROM jobs GROUP BY state").fetchall()
+        return {state: 0 for state in JOB_STATES} | dict(rows)
+
+    def ping(self) -> None:
+        with self._connect() as db:
+            db.execute("SELECT 1").fetchone()
+
+
+# ------------------------------------------------------------------------------------------------- Redis
+
+
+class RedisJobStore:
+    """bcf:job:<id> holds the JSON; sorted sets (score = creation time) index all jobs and each state;
+    bcf:key:<input_key> names the job that holds a key."""
+
+    def __init__(self, url: str, prefix: str = "bcf"):
+        import redis
+
+        self._redis_errors = (redis.exceptions.ConnectionError, redis.exceptions.TimeoutError)
+        self._watch_error = redis.exceptions.WatchError
+        self.client = redis.Redis.from_url(url, socket_timeout=10, socket_connect_timeout=5)
+        self.prefix = prefix
+
+    def _job(self, job_id: str) -> str:
+        return f"{self.prefix}:job:{job_id}"
+
+    def _state(self, state: str) -> str:
+        return f"{self.prefix}:state:{state}"
+
+    def _key(self, input_key: str) -> str:
+        return f"{self.prefix}:key:{input_key}"
+
+    @contextlib.contextmanager
+    def _errors(self) -> Iterator[None]:
+        try:
+            yield
+        except self._redis_errors as exc:
+            raise StoreUnavailable(f"job store (Redis): {exc}") from exc
+
+    def _optimistic(self, watched: list[str], body: Callable[..., object]) -> object:
+        """Run body(pipe) under WATCH until no watched key changed meanwhile."""
+        with self._errors(), self.client.pipeline() as pipe:
+            while True:
+                try:
+                    pipe.watch(*watched)
+                    return body(pipe)
+                except self._watch_error:
+                    continue
+
+    def add(self, job: Job) -> tuple[Job, bool]:
+        def body(pipe) -> tuple[Job, bool]:
+            holder = pipe.get(self._key(job.input_key))
+            if holder is not None:
+                raw = pipe.get(self._job(holder.decode()))
+                if raw is not None:
+                    existing = Job.model_validate_json(raw)
+                    if existing.state in _KEY_HOLDING_STATES:
+                        pipe.unwatch()
+                        return existing, False
+            score = job.created_at.timestamp()
+            pipe.multi()
+            pipe.set(self._job(job.id), job.model_dump_json())
+            pipe.set(self._key(job.input_key), job.id)
+            pipe.zadd(f"{self.prefix}:jobs", {job.id: score})
+            pipe.zadd(self._state(job.state), {job.id: score})
+            pipe.execute()
+            return job, True
+
+        # Watching the key's holder is not enough: its state may change (to failed) meanwhile; that only
+        # makes us return a job that just failed, which the client sees and may resubmit.
+        return self._optimistic([self._key(job.input_key)], body)  # type: ignore[return-value]
+
+    def get(self, job_id: str) -> Optional[Job]:
+        with self._errors():
+            raw = self.client.get(self._job(job_id))
+        return None if raw is None else Job.model_validate_json(raw)
+
+    def update(self, job_id: str, change: Change) -> Optional[Job]:
+        def body(pipe) -> Optional[Job]:
+            raw = pipe.get(self._job(job_id))
+            if raw is None:
+                pipe.unwatch()
+                return None
+            job = Job.model_validate_json(raw)
+            changed = change(job)
+            if changed is None:
+                pipe.unwatch()
+                return job
+            changed = _stamped(changed)
+            pipe.multi()
+            pipe.set(self._job(job_id), changed.model_dump_json())
+            if changed.state != job.state:
+                pipe.zrem(self._state(job.state), job_id)
+                pipe.zadd(self._state(changed.state), {job_id: job.created_at.timestamp()})
+            pipe.execute()
+            return changed
+
+        return self._optimistic([self._job(job_id)], body)  # type: ignore[return-value]
+
+    def list(self, states: Optional[set[str]] = None, offset: int = 0,
+             limit: Optional[int] = None) -> tuple[list[Job], int]:
+        with self._errors():
+            if states and set(states) != set(JOB_STATES):
+                # Merge the per-state indexes into a temporary one (kept for a few seconds, then expired).
+                keys = [self._state(s) for s in sorted(states)]
+                index = f"{self.prefix}:tmp:{'+'.join(sorted(states))}"
+                pipe = self.client.pipeline()
+                pipe.zunionstore(index, keys)
+                pipe.expire(index, 5)
+                pipe.execute()
+            else:
+                index = f"{self.prefix}:jobs"
+            total = self.client.zcard(index)
+            stop = -1 if limit is None else offset + limit - 1
+            ids = [i.decode() for i in self.client.zrevrange(index, offset, stop)] if limit != 0 else []
+            raws = self.client.mget([self._job(i) for i in ids]) if ids else []
+        return [Job.model_validate_json(r) for r in raws if r is not None], total
+
+    def counts(self) -> dict[str, int]:
+        with self._errors():
+            pipe = self.client.pipeline()
+            for state in JOB_STATES:
+                pipe.zcard(self._state(state))
+            return dict(zip(JOB_STATES, pipe.execute()))
+
+    def ping(self) -> None:
+        with self._errors():
+            self.client.ping()
+
+
+def open_store(settings: Settings) -> JobStore:
+    """Redis when BCF_QUEUE_URL is set, else SQLite in the data directory."""
+    if settings.queue_url:
+        return RedisJobStore(settings.queue_url)
+    return SqliteJobStore(settings.data_dir / "jobs.db")
+

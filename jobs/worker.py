@@ -1,0 +1,231 @@
+"""`bcf worker`: a Huey consumer that runs compression jobs with `bcf.core.compress.compress_material`.
+
+A job runs in a consumer thread; a monitor thread beside it writes progress and a heartbeat to the job
+record every `heartbeat_s` and notices cancel requests. A cancel request or a shutdown stops training at the
+next iteration (`should_stop`); a shutdown puts the job back in the queue for another worker.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import threading
+import time
+import traceback
+import uuid
+from pathlib import Path
+from typing import Optional
+
+from bcf.core import compress, material
+from bcf.core.options import resolve_options
+from bcf.core.training import TrainingProgress, TrainingStopped
+from bcf.jobs.queue import JobQueue
+from bcf.jobs.records import Job, JobProgress, JobResult, utc_now
+from bcf.jobs.settings import Settings
+from bcf.jobs.store import JobStore, StoreUnavailable
+
+__all__ = ["Worker", "job_result", "load_job_material"]
+
+log = logging.getLogger("bcf.worker")
+
+
+def load_job_material(job: Job, inputs: Path) -> material.TextureSet:
+    """The job's texture set from its stored inputs (<role>.<ext> in `inputs`)."""
+    files = material.MaterialFiles(**{f.role: inputs / f.stored_as for f in job.inputs},
+                                   normal_convention=job.options.normal_convention)
+    return material.load_texture_set(files, name=job.name)
+
+
+def job_result(folder: Path, report) -> JobResult:
+    artifacts = sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file())
+    return JobResult(psnr=report.aggregate.psnr.all, ssim=report.aggregate.ssim.all,
+                     size_bytes=report.size.total_bytes, bits_per_texel=report.size.bits_per_texel,
+                     artifacts=artifacts)
+
+
+class _Monitor:
+    """Heartbeat, progress and cancel requests of one running job, on its own thread."""
+
+    def __init__(self, store: JobStore, job: Job, worker_id: str, interval_s: float, phase2_iterations: int):
+        self.store, self.job_id, self.worker_id = store, job.id, worker_id
+        self.interval_s = interval_s
+        self.phase2_iterations = phase2_iterations
+        self.progress = JobProgress(stage="loading")
+        self.cancel = threading.Event()
+        self._done = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"monitor-{job.id}", daemon=True)
+
+    def __enter__(self) -> "_Monitor":
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._done.set()
+        self._thread.join()
+
+    def on_progress(self, p: TrainingProgress) -> None:
+        left = p.total - p.iteration + (self.phase2_iterations if p.phase == 1 else 0)
+        self.progress = JobProgress(stage="training", phase=p.phase, iteration=p.iteration, total=p.total,
+                                    psnr=round(p.psnr, 3), eta_s=round(left / max(p.iterations_per_s, 1e-9), 1))
+
+    def on_note(self, text: str) -> None:
+        self.progress = self.progress.model_copy(update={"stage": text, "eta_s": None})
+
+    def _run(self) -> None:
+        while not self._done.wait(self.interval_s):
+            self.beat()
+
+    def beat(self) -> None:
+        progress = self.progress
+
+        def change(job: Job) -> Optional[Job]:
+            if job.state != "running" or job.worker != self.worker_id:
+                return None
+            return job.model_copy(update={"heartbeat_at": utc_now(), "progress": progress})
+
+        try:
+            job = self.store.update(self.job_id, change)
+        except StoreUnavailable as exc:  # keep training; the next beat may get through
+            log.warning("job %s: heartbeat not stored: %s", self.job_id, exc)
+            return
+        if job is None or job.cancel_requested or job.worker != self.worker_id or job.state != "running":
+            self.cancel.set()  # cancelled, or the job was given to another worker: stop working on it
+
+
+class Worker:
+    """Runs jobs from the queue on one torch device."""
+
+    def __init__(self, settings: Settings, device: str = "cpu"):
+        self.settings = settings
+        self.device = device
+        self.id = f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex[:6]}"
+        self.queue = JobQueue(settings, runner=self.run_job)
+        self.shutdown = threading.Event()
+        self._held: set[str] = set()
+        self._lock = threading.Lock()
+
+    # ------------------------------------------------------------------------------------------- one job
+
+    def _claim(self, job: Job) -> Optional[Job]:
+        if job.state != "queued":
+            return None
+        return job.model_copy(update={"state": "running", "attempts": job.attempts + 1, "worker": self.id,
+                                      "started_at": utc_now(), "heartbeat_at": utc_now(), "error": None,
+                                      "progress": JobProgress(stage="loading")})
+
+    def _finish(self, job_id: str, **fields: object) -> Optional[Job]:
+        def change(job: Job) -> Optional[Job]:
+            if job.state != "running" or job.worker != self.id:
+                return None  # re-queued meanwhile (we looked dead): the other run owns it now
+            return job.model_copy(update={"finished_at": utc_now(), **fields})
+        return self.queue.store.update(job_id, change)
+
+    def release(self, job_id: str) -> None:
+        """Give a job this worker holds back to the queue (shutdown): another worker restarts it."""
+        def change(job: Job) -> Optional[Job]:
+            if job.state != "running" or job.worker != self.id:
+                return None
+            return job.model_copy(update={"state": "queued", "worker": None, "started_at": None,
+                                          "progress": JobProgress(stage="queued")})
+        job = self.queue.store.update(job_id, change)
+        if job is not None and job.state == "queued":
+            self.queue.enqueue(job_id)
+            log.info("job %s: back in the queue (worker shutting down)", job_id)
+
+    def run_job(self, job_id: str) -> None:
+        """The Huey task: claim the job, compress, record the outcome. Never raises for a job's own failure."""
+        if self.shutdown.is_set():
+            return  # the message is re-sent by `recover` or the job is released
+        job = self.queue.store.update(job_id, self._claim)
+        if job is None or job.state != "running" or job.worker != self.id:
+            return  # cancelled, or already run: a duplicate message
+        with self._lock:
+            self._held.add(job_id)
+        try:
+            self._run_claimed(job)
+        finally:
+            with self._lock:
+                self._held.discard(job_id)
+
+    def _run_claimed(self, job: Job) -> None:
+        started = time.perf_counter()
+        options = job.options.compress_options().model_copy(update={"device": self.device})
+        resolved = resolve_options(options)
+        log.info("job %s: %s, attempt %d, preset %s on %s", job.id, job.name, job.attempts, resolved.preset,
+                 self.device)
+        self.queue.remove_partial_outputs(job.id)
+        output = self.queue.artifacts_path(job.id)
+        with _Monitor(self.queue.store, job, self.id, self.settings.heartbeat_s,
+                      resolved.phase2_iterations) as monitor:
+            try:
+                texture_set = load_job_material(job, self.queue.inputs_path(job.id))
+                report = compress.compress_material(
+                    texture_set, resolved, output, progress=monitor.on_progress,
+                    should_stop=lambda: monitor.cancel.is_set() or self.shutdown.is_set(), overwrite=True,
+                    baselines=job.options.baselines, note=monitor.on_note)
+            except TrainingStopped:
+                if self.shutdown.is_set() and not monitor.cancel.is_set():
+                    self.release(job.id)
+                    return
+                self._finish(job.id, state="cancelled", progress=monitor.progress.model_copy(
+                    update={"stage": "cancelled", "eta_s": None}))
+                log.info("job %s: cancelled", job.id)
+                return
+            except Exception as exc:  # any failure of one job is that job's, not the worker's
+                message = f"{exc}" if isinstance(exc, (ValueError, OSError)) else f"{type(exc).__name__}: {exc}"
+                self._finish(job.id, state="failed", error=message,
+                             progress=monitor.progress.model_copy(update={"stage": "failed", "eta_s": None}))
+                log.error("job %s: failed: %s\n%s", job.id, message, traceback.format_exc())
+                return
+        done = self._finish(job.id, state="succeeded", result=job_result(output, report),
+                            progress=monitor.progress.model_copy(update={"stage": "finished", "eta_s": 0.0}))
+        if done is not None and done.state == "succeeded":
+            log.info("job %s: succeeded in %.1f s, %.2f dB", job.id, time.perf_counter() - started,
+                     report.aggregate.psnr.all)
+
+    # ------------------------------------------------------------------------------------------ consumer
+
+    def _recover_forever(self) -> None:
+        interval = max(1.0, self.settings.stale_after_s / 3)
+        while not self.shutdown.wait(interval):
+            self._recover()
+
+    def _recover(self) -> None:
+        try:
+            for job in self.queue.recover():
+                log.info("job %s: recovered -> %s", job.id, job.state)
+        except StoreUnavailable as exc:
+            log.warning("recovery pass skipped: %s", exc)
+
+    def serve(self, concurrency: int = 1) -> None:
+        """Consume jobs until SIGTERM or SIGINT; jobs still running then go back to the queue."""
+        # SIGTERM (docker stop, bcf serve's shutdown) is graceful: running jobs stop at the next iteration and
+        # are released; SIGINT stops at once and releases from here.
+        consumer = self.queue.huey.create_consumer(workers=concurrency, worker_type="thread", periodic=False,
+                                                   initial_delay=0.1, backoff=1.15, max_delay=1.0,
+                                                   graceful_signal="TERM")
+        stop_flag = consumer.stop_flag
+        original_is_set = stop_flag.is_set
+
+        def stopping() -> bool:  # huey's stop flag also tells our jobs to stop
+            if original_is_set():
+                self.shutdown.set()
+            return original_is_set()
+
+        stop_flag.is_set = stopping  # type: ignore[method-assign]
+        log.info("worker %s: %s mode, device %s, %d at a time, data in %s", self.id,
+                 "farm (Redis)" if self.settings.farm_mode else "embedded (SQLite)", self.device, concurrency,
+                 self.settings.data_dir)
+        self._recover()
+        recovery = threading.Thread(target=self._recover_forever, name="recovery", daemon=True)
+        recovery.start()
+        try:
+            consumer.run()
+        finally:
+            self.shutdown.set()
+            with self._lock:
+                held = list(self._held)
+            for job_id in held:
+                self.release(job_id)
+            log.info("worker %s: stopped", self.id)

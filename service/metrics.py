@@ -1,0 +1,31 @@
+"""GET /metrics: Prometheus text exposition of the job store and queue."""
+
+from __future__ import annotations
+
+from bcf.jobs.queue import JobQueue
+from bcf.jobs.records import FINAL_STATES
+
+__all__ = ["DURATION_BUCKETS_S", "prometheus_text"]
+
+# Job run times (started -> finished) span seconds (fast preset, small materials) to hours (paper preset, 2K).
+DURATION_BUCKETS_S = (1, 5, 15, 60, 300, 900, 3600, 4 * 3600, 12 * 3600)
+
+
+def prometheus_text(queue: JobQueue) -> str:
+    lines = ["# HELP bcf_jobs Jobs in the store by state.", "# TYPE bcf_jobs gauge"]
+    for state, count in queue.store.counts().items():
+        lines.append(f'bcf_jobs{{state="{state}"}} {count}')
+    lines += ["# HELP bcf_queue_depth Messages waiting in the queue for a worker.", "# TYPE bcf_queue_depth gauge",
+              f"bcf_queue_depth {queue.pending_messages()}"]
+    finished, _ = queue.store.list(set(FINAL_STATES))
+    lines += ["# HELP bcf_job_duration_seconds Run time of finished jobs (start of the last attempt to end).",
+              "# TYPE bcf_job_duration_seconds histogram"]
+    for state in sorted(FINAL_STATES):
+        durations = [d for job in finished if job.state == state and (d := job.duration_s) is not None]
+        for bound in DURATION_BUCKETS_S:
+            lines.append(f'bcf_job_duration_seconds_bucket{{state="{state}",le="{bound}"}} '
+                         f"{sum(d <= bound for d in durations)}")
+        lines.append(f'bcf_job_duration_seconds_bucket{{state="{state}",le="+Inf"}} {len(durations)}')
+        lines.append(f'bcf_job_duration_seconds_sum{{state="{state}"}} {sum(durations):.3f}')
+        lines.append(f'bcf_job_duration_seconds_count{{state="{state}"}} {len(durations)}')
+    return "\n".join(lines) + "\n"

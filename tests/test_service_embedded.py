@@ -1,0 +1,176 @@
+"""The service in embedded mode, end to end with real processes: `bcf serve` (uvicorn on 127.0.0.1) and
+`bcf worker` processes sharing a SQLite queue in a data directory."""
+
+from __future__ import annotations
+
+import io
+import json
+import signal
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from bcf.core import bc6h, containers, export
+from bcf_command import run_bcf
+from reference_decoders import decode_with_oiio
+from service_harness import TINY_OPTIONS, BcfEnvironment, tiny_material
+
+# Long enough to be caught running; stopped by cancel or by a killed worker (never run to the end).
+ENDLESS_OPTIONS = {"preset": "fast", "phase1_iterations": 1_000_000, "phase2_iterations": 10, "batch_size": 1024}
+# About 10 s of training on 64x64: a worker can be killed in the middle and the job still finish soon after.
+KILLABLE_OPTIONS = {"preset": "fast", "phase1_iterations": 1500, "phase2_iterations": 1500, "batch_size": 1024}
+
+
+def submit(server: Any, files: dict, options: dict) -> Any:
+    return server.client.post("/v1/jobs", files=files, data={"options": json.dumps(options)})
+
+
+@pytest.fixture(scope="module")
+def service(tmp_path_factory: pytest.TempPathFactory) -> Any:
+    """An embedded service with one worker process started by `bcf serve` itself."""
+    environment = BcfEnvironment(tmp_path_factory.mktemp("embedded"), heartbeat_s=0.5)
+    server = environment.serve(workers=1)
+    yield server
+    server.stop()
+
+
+def test_submit_poll_download_and_decode_the_artifacts(service: Any, tmp_path: Path) -> None:
+    response = submit(service, tiny_material(1), TINY_OPTIONS)
+    assert response.status_code == 202, response.text
+    job = response.json()
+    assert job["state"] == "queued" and response.headers["location"] == f"/v1/jobs/{job['id']}"
+    assert {f["role"] for f in job["inputs"]} == {"albedo", "normal", "roughness", "metalness"}
+    assert job["options"]["normal_convention"] == "directx"  # from ambientCG's plain _Normal name
+
+    done = service.wait_finished(job["id"])
+    assert done["state"] == "succeeded", done["error"]
+    assert done["attempts"] == 1 and done["progress"]["stage"] == "finished"
+    assert done["progress"]["phase"] == 2 and done["progress"]["iteration"] == TINY_OPTIONS["phase2_iterations"]
+
+    archive = service.client.get(f"/v1/jobs/{job['id']}/artifacts")
+    assert archive.status_code == 200 and archive.headers["content-type"] == "application/zip"
+    folder = tmp_path / "result"
+    with zipfile.ZipFile(io.BytesIO(archive.content)) as z:
+        assert sorted(z.namelist()) == sorted(done["result"]["artifacts"])
+        z.extractall(folder)
+    # The export loads (it checks every file against the manifest's SHA-256) and scores what the job said.
+    exported = export.load_export(folder)
+    report = json.loads((folder / "report.json").read_text())
+    assert report["aggregate"]["psnr"]["all"] == pytest.approx(done["result"]["psnr"])
+    assert exported.manifest.material.name == done["name"]
+    # An independent BC6H decoder (OpenImageIO) reads the downloaded features as our decoder does.
+    texture = containers.read_dds(folder / "features_0.dds")
+    for level in range(len(texture.levels)):
+        ours = bc6h.decode_image(texture.levels[level], *texture.level_size(level), texture.signed)
+        by_oiio = decode_with_oiio(folder / "features_0.dds", level)
+        assert np.array_equal(ours.view(np.uint16), by_oiio.view(np.uint16)), level
+    decoded = run_bcf("decode", folder, "-o", tmp_path / "decoded")
+    assert decoded.returncode == 0, decoded.stderr
+    assert (tmp_path / "decoded" / "albedo.png").is_file()
+
+    single = service.client.get(f"/v1/jobs/{job['id']}/artifacts/report.json")
+    assert single.status_code == 200 and single.json() == report
+    assert service.client.get(f"/v1/jobs/{job['id']}/report").json() == report
+
+    again = submit(service, tiny_material(1), TINY_OPTIONS)
+    assert again.status_code == 200 and again.json()["id"] == job["id"]  # same inputs + options: same job
+    # Other options are another job; baselines are scored and shipped as for `bcf compress --baselines`.
+    other = submit(service, tiny_material(1), {**TINY_OPTIONS, "seed": 1, "baselines": ["bc1_bc5_half", "naive"]})
+    assert other.status_code == 202 and other.json()["id"] != job["id"]
+    assert other.json()["options"]["baselines"] == ["bc1_bc5_half", "naive_bc6"]
+    finished = service.wait_finished(other.json()["id"])
+    assert finished["state"] == "succeeded", finished["error"]
+    assert "baselines/bc1_bc5_half/albedo.dds" in finished["result"]["artifacts"]
+    scored = service.client.get(f"/v1/jobs/{finished['id']}/report").json()["baselines"]
+    assert set(scored) == {"bc1_bc5_half", "naive_bc6"}
+
+
+def test_without_tokens_the_server_listens_on_loopback_only(tmp_path: Path) -> None:
+    server = BcfEnvironment(tmp_path).serve(None, 0, "--host", "0.0.0.0")
+    try:
+        log = server.log.read_text()
+        assert "no BCF_API_TOKENS configured: listening on 127.0.0.1 only, not 0.0.0.0" in log
+        assert f"Uvicorn running on {server.url}" in log
+        assert server.client.get("/v1/jobs").json()["total"] == 0  # no token needed
+    finally:
+        server.stop()
+
+
+def test_cancelling_a_running_job_stops_it_within_seconds(service: Any) -> None:
+    job = submit(service, tiny_material(2), ENDLESS_OPTIONS).json()
+    running = service.wait_for_job(job["id"], lambda j: j["state"] == "running" and j["progress"]["iteration"] > 0,
+                                   60, "to be training")
+    assert running["progress"]["total"] == ENDLESS_OPTIONS["phase1_iterations"]
+    assert running["progress"]["eta_s"] > 0 and running["progress"]["psnr"] is not None
+    response = service.client.delete(f"/v1/jobs/{job['id']}")
+    assert response.status_code == 202 and response.json()["cancel_requested"] is True
+    cancelled = service.wait_for_job(job["id"], lambda j: j["state"] == "cancelled", 10, "to be cancelled")
+    assert cancelled["progress"]["iteration"] < ENDLESS_OPTIONS["phase1_iterations"]
+    assert service.client.get(f"/v1/jobs/{job['id']}/artifacts").status_code == 409
+    # The worker is free again: the next job runs.
+    follow = submit(service, tiny_material(3), TINY_OPTIONS).json()
+    assert service.wait_finished(follow["id"])["state"] == "succeeded"
+
+
+def test_a_queued_job_survives_a_server_restart(tmp_path: Path) -> None:
+    environment = BcfEnvironment(tmp_path)
+    server = environment.serve(workers=0)  # no worker: the job stays queued
+    job = submit(server, tiny_material(4), TINY_OPTIONS).json()
+    assert server.stop() == 0
+
+    server = environment.serve(workers=0)
+    try:
+        assert server.job(job["id"])["state"] == "queued"
+        listed = server.client.get("/v1/jobs", params={"state": "queued"}).json()
+        assert [j["id"] for j in listed["jobs"]] == [job["id"]]
+        worker = environment.worker()
+        try:
+            assert server.wait_finished(job["id"], logs=(worker.log,))["state"] == "succeeded"
+        finally:
+            worker.stop()
+    finally:
+        server.stop()
+
+
+def test_a_job_whose_worker_is_killed_is_rerun_by_the_next_worker(tmp_path: Path) -> None:
+    environment = BcfEnvironment(tmp_path, heartbeat_s=0.5, stale_after_s=3)
+    server = environment.serve(workers=0)
+    try:
+        job = submit(server, tiny_material(5), KILLABLE_OPTIONS).json()
+        first = environment.worker()
+        server.wait_for_job(job["id"], lambda j: j["state"] == "running" and j["progress"]["iteration"] > 0, 60,
+                            "to be training", logs=(first.log,))
+        first.stop(signal.SIGKILL)
+        assert server.job(job["id"])["state"] == "running"  # nobody knows yet that its worker is gone
+
+        second = environment.worker()
+        try:
+            done = server.wait_finished(job["id"], timeout=120, logs=(second.log,))
+        finally:
+            second.stop()
+        assert done["state"] == "succeeded", done["error"]
+        assert done["attempts"] == 2 and done["error"] is None
+        assert "recovered" in second.log.read_text()
+        # The killed attempt's staging folder is gone; only the finished artifacts remain.
+        assert [p.name for p in (environment.data_dir / "artifacts").iterdir()] == [job["id"]]
+    finally:
+        server.stop()
+
+
+def test_a_stopped_worker_puts_its_job_back_at_once(tmp_path: Path) -> None:
+    environment = BcfEnvironment(tmp_path, heartbeat_s=0.5)
+    server = environment.serve(workers=0)
+    try:
+        job = submit(server, tiny_material(6), ENDLESS_OPTIONS).json()
+        worker = environment.worker()
+        server.wait_for_job(job["id"], lambda j: j["state"] == "running", 60, "to be running", logs=(worker.log,))
+        assert worker.stop(signal.SIGTERM, timeout=30) == 0
+        back = server.job(job["id"])
+        assert back["state"] == "queued" and back["worker"] is None and back["attempts"] == 1
+        assert "back in the queue" in worker.log.read_text()
+        assert server.client.delete(f"/v1/jobs/{job['id']}").json()["state"] == "cancelled"
+    finally:
+        server.stop()
