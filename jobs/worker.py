@@ -28,6 +28,7 @@ from bcf.jobs.store import JobStore, StoreUnavailable
 __all__ = ["Worker", "job_result", "load_job_material"]
 
 log = logging.getLogger("bcf.worker")
+SHUTDOWN_GRACE_S = 10.0
 
 
 def load_job_material(job: Job, inputs: Path) -> material.TextureSet:
@@ -224,8 +225,16 @@ class Worker:
             consumer.run()
         finally:
             self.shutdown.set()
+            # Jobs in training stop at their next iteration and release themselves; give them that moment
+            # (exiting under a thread that is inside torch aborts the process). A job still evaluating after
+            # the grace period is released here and rerun elsewhere.
+            deadline = time.monotonic() + SHUTDOWN_GRACE_S
+            while self._held and time.monotonic() < deadline:
+                time.sleep(0.05)
             with self._lock:
                 held = list(self._held)
             for job_id in held:
                 self.release(job_id)
             log.info("worker %s: stopped", self.id)
+            if held:
+                os._exit(1)  # threads still inside torch: skip interpreter teardown

@@ -160,14 +160,15 @@ def test_a_job_whose_worker_is_killed_is_rerun_by_the_next_worker(tmp_path: Path
         server.stop()
 
 
-def test_a_stopped_worker_puts_its_job_back_at_once(tmp_path: Path) -> None:
+@pytest.mark.parametrize("stop_signal", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_a_stopped_worker_puts_its_job_back_at_once(stop_signal: int, tmp_path: Path) -> None:
     environment = BcfEnvironment(tmp_path, heartbeat_s=0.5)
     server = environment.serve(workers=0)
     try:
         job = submit(server, tiny_material(6), ENDLESS_OPTIONS).json()
         worker = environment.worker()
         server.wait_for_job(job["id"], lambda j: j["state"] == "running", 60, "to be running", logs=(worker.log,))
-        assert worker.stop(signal.SIGTERM, timeout=30) == 0
+        assert worker.stop(stop_signal, timeout=30) == 0
         back = server.job(job["id"])
         assert back["state"] == "queued" and back["worker"] is None and back["attempts"] == 1
         assert "back in the queue" in worker.log.read_text()
