@@ -25,7 +25,8 @@ from bcf.core.options import CompressOptions, ResolvedOptions, resolve_options
 from bcf.core.sampling import ReferenceMaterial, material_mip_count
 from bcf.core.training import FitResult, ProgressCallback, StopCallback, fit
 
-__all__ = ["BASELINES_FOLDER", "OutputExistsError", "compress_material", "decode_export", "decoded_file_names"]
+__all__ = ["BASELINES_FOLDER", "OutputExistsError", "compress_material", "decode_export", "decoded_file_names",
+           "replace_folder"]
 
 REPORT_FILE = report.REPORT_FILE
 BASELINES_FOLDER = "baselines"  # OUT/baselines/<name>/: the baseline codecs' texture files
@@ -49,7 +50,7 @@ def check_output(output: Path, overwrite: bool) -> None:
         raise OutputExistsError(f"{output}: folder exists and is not empty (use --force to replace it)")
 
 
-def _replace_folder(staged: Path, output: Path) -> None:
+def replace_folder(staged: Path, output: Path) -> None:
     """Move the finished `staged` folder to `output`, replacing it; `output` is never half-written."""
     if output.exists():
         old = output.with_name(f".{output.name}.old-{os.getpid()}")
@@ -145,7 +146,7 @@ def compress_material(material: TextureSet, options: CompressOptions | ResolvedO
         while rep.size.files_bytes != _folder_bytes(staged):  # settles in 1-2 rounds (digit count changes)
             rep.size.files_bytes = _folder_bytes(staged)
             (staged / REPORT_FILE).write_text(rep.model_dump_json(indent=2) + "\n")
-        _replace_folder(staged, output)
+        replace_folder(staged, output)
     except BaseException:
         shutil.rmtree(staged, ignore_errors=True)
         raise

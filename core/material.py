@@ -3,7 +3,8 @@
 Three steps, each usable on its own:
 
 1. `discover_material(folder)` assigns files to roles (albedo, normal, ARM or separate AO / roughness /
-   metalness) from their names, the way Poly Haven, ambientCG, 3dtextures.me and generic exporters name them.
+   metalness) from their names, the way Poly Haven, ambientCG, 3dtextures.me, Substance Painter, Unreal (`T_x_D`,
+   `_N`, `_ORM`), glTF and generic exporters name them.
 2. `resolve_material(folder, explicit)` lets files named on the command line override what was discovered and
    checks that the set is complete (albedo, normal and roughness are required).
 3. `load_texture_set(files)` reads and validates the images and packs them into one (H, W, 8) float32 array
@@ -32,12 +33,14 @@ from .images import ImageReadError, read_image
 
 __all__ = [
     "CHANNELS", "IMAGE_EXTENSIONS", "TEXTURES", "MaterialError", "MaterialFiles", "MaterialSource",
-    "NormalConvention", "Role", "SourceFile", "TextureSet", "discover_material", "load_material",
+    "NormalConvention", "Role", "SourceFile", "TextureSet", "discover_material", "file_sha256", "load_material",
     "load_texture_set", "material_images", "normal_convention_from_name", "resolve_material",
 ]
 
 Role = Literal["albedo", "normal", "arm", "ao", "roughness", "metalness"]
 NormalConvention = Literal["opengl", "directx"]
+# Maps bcf does not compress but an asset scan still lists with their material (`bcf.core.assets`).
+ExtraRole = Literal["height", "opacity"]
 
 ROLES: tuple[Role, ...] = get_args(Role)
 # The maps an ARM (or glTF ORM) texture packs, in its channel order R, G, B.
@@ -151,6 +154,8 @@ _SUFFIXES: tuple[tuple[tuple[str, ...], Role, NormalConvention | None], ...] = (
     (("base", "color"), "albedo", None),
     (("base", "colour"), "albedo", None),
     (("ambient", "occlusion"), "ao", None),
+    (("mixed", "ao"), "ao", None),  # Substance Painter's `_Mixed_AO`
+    (("occlusion", "roughness", "metallic"), "arm", None),
     (("normalgl",), "normal", "opengl"),  # ambientCG
     (("normaldx",), "normal", "directx"),
     (("normal",), "normal", None),
@@ -159,12 +164,18 @@ _SUFFIXES: tuple[tuple[tuple[str, ...], Role, NormalConvention | None], ...] = (
     (("col",), "albedo", None),
     (("color",), "albedo", None),  # ambientCG
     (("colour",), "albedo", None),
-    (("basecolor",), "albedo", None),
+    (("basecolor",), "albedo", None),  # also Substance Painter's `_BaseColor` (one token)
     (("basecolour",), "albedo", None),
     (("albedo",), "albedo", None),
     (("diffuse",), "albedo", None),
+    (("bc",), "albedo", None),  # Unreal base colour
+    (("d",), "albedo", None),  # Unreal diffuse
+    # Unreal's `_N`: the engine's tangent space is DirectX-style (Y-), so its normal maps are stored that way.
+    (("n",), "normal", "directx"),
     (("arm",), "arm", None),
     (("orm",), "arm", None),  # glTF occlusion-roughness-metallic: the same channel order as ARM
+    (("occlusionroughnessmetallic",), "arm", None),  # Substance Painter / glTF exporters, spelled out
+    # Not MRA (metallic-roughness-AO): its channel order differs from ARM's.
     (("ambientocclusion",), "ao", None),
     (("occlusion",), "ao", None),
     (("ao",), "ao", None),
@@ -179,7 +190,13 @@ _SUFFIXES: tuple[tuple[tuple[str, ...], Role, NormalConvention | None], ...] = (
 _UNUSED = frozenset({
     "displacement", "disp", "height", "opacity", "alpha", "bump", "specular", "spec", "emissive", "emission",
     "preview", "thumbnail", "gloss", "glossiness", "mask", "transmission", "translucency", "idmask",
+    "transparency",
 })
+# The unused maps an asset scan lists with their material (the rest of `_UNUSED` it leaves out).
+_EXTRA_MAPS: dict[str, ExtraRole] = {
+    "height": "height", "displacement": "height", "disp": "height", "bump": "height",
+    "opacity": "opacity", "alpha": "opacity", "transparency": "opacity",
+}
 
 # Tokens that can trail the map name: resolutions (2k, 1K), formats (ambientCG's "1K-JPG"), Poly Haven's
 # variant numbers (`col_1`) and generic words. They never decide a role.
@@ -200,6 +217,8 @@ class _Named:
     role: Role | None
     convention: NormalConvention | None = None
     unused: bool = False  # a known map bcf does not use (height, opacity, ...), as opposed to an unknown name
+    extra: ExtraRole | None = None  # for an unused map: height or opacity, the kinds an asset scan lists
+    prefix: int = 0  # how many leading tokens of the name come before the map's name (the material's name)
 
 
 def _tokens(stem: str) -> list[str]:
@@ -217,12 +236,15 @@ def _classify(path: Path) -> _Named:
         return _Named(None, unused=True)
     tokens = _tokens(path.stem)
     if tokens and tokens[-1] in _UNUSED:
-        return _Named(None, unused=True)
+        return _Named(None, unused=True, extra=_EXTRA_MAPS.get(tokens[-1]), prefix=len(tokens) - 1)
     for suffix, role, convention in _SUFFIXES:
+        # A single letter is a map name only after a material name (Unreal's `T_Brick_N`), not alone (`n.png`).
+        if len(suffix[0]) == 1 and len(tokens) == 1:
+            continue
         if tuple(tokens[-len(suffix):]) == suffix:
             if role == "normal" and convention is None and _AMBIENTCG_PLAIN_NORMAL.fullmatch(path.stem):
                 convention = "directx"
-            return _Named(role, convention)
+            return _Named(role, convention, prefix=max(len(tokens) - len(suffix), 0))
     return _Named(None)
 
 
@@ -263,6 +285,11 @@ def _scan(directory: Path) -> _Scan:
     files = sorted((p for p in directory.iterdir() if p.is_file()), key=lambda p: p.name)
     if not files:
         raise MaterialError(f"{directory}: the folder has no files")
+    return _scan_files(files)
+
+
+def _scan_files(files: Iterable[Path]) -> _Scan:
+    """Classify `files` (in the given order): `_scan` for a folder, or an asset scan for part of one."""
     scan = _Scan(candidates={role: [] for role in ROLES}, ignored=[], unknown_images=[])
     for path in files:
         named = _classify(path)
@@ -308,9 +335,12 @@ def _join(names: Iterable[str]) -> str:
 
 
 def _choose(directory: Path, scan: _Scan, skip: frozenset[Role] = frozenset(),
-            convention: NormalConvention | None = None) -> MaterialFiles:
+            convention: NormalConvention | None = None, problems: list[str] | None = None) -> MaterialFiles:
     """One file per role from `scan`, leaving out the roles in `skip` (the caller has files for them);
-    `convention` is the normal convention the user asked for, if any (see `_pick`)."""
+    `convention` is the normal convention the user asked for, if any (see `_pick`).
+
+    A role with several candidates raises MaterialError, or, when `problems` is given, appends the error's
+    message there and leaves the role empty, so a scan of many folders can report it and go on."""
     chosen: dict[Role, Path] = {}
     normal_convention: NormalConvention | None = None
     ignored = list(scan.ignored)
@@ -322,7 +352,14 @@ def _choose(directory: Path, scan: _Scan, skip: frozenset[Role] = frozenset(),
             continue
         if not candidates:
             continue
-        path, role_convention, role_notes = _pick(directory, role, candidates, convention)
+        try:
+            path, role_convention, role_notes = _pick(directory, role, candidates, convention)
+        except MaterialError as exc:
+            if problems is None:
+                raise
+            problems.append(str(exc))
+            ignored.extend(p for p, _ in candidates)
+            continue
         chosen[role] = path
         notes.extend(role_notes)
         ignored.extend(p for p, _ in candidates if p != path)
@@ -402,6 +439,15 @@ def resolve_material(directory: Path | None, explicit: MaterialFiles) -> Materia
     return resolved
 
 
+def _missing_roles(roles: Iterable[Role]) -> list[str]:
+    """The required roles absent from `roles`, as messages name them: albedo, normal, roughness (or an ARM map)."""
+    present = set(roles)
+    missing = [role for role in ("albedo", "normal") if role not in present]
+    if "arm" not in present and "roughness" not in present:
+        missing.append("roughness (or an ARM map)")
+    return missing
+
+
 def _check_complete(files: MaterialFiles, directory: Path | None) -> None:
     """Raise MaterialError unless `files` has albedo, normal and roughness (own file or ARM), ARM exclusive."""
     roles = files.roles()
@@ -412,9 +458,7 @@ def _check_complete(files: MaterialFiles, directory: Path | None) -> None:
     if "arm" in roles and packed:
         raise MaterialError(f"{where}: an ARM map ({roles['arm'].name}) and separate "
                             f"{'/'.join(packed)} maps cannot be used together")
-    missing = [role for role in ("albedo", "normal") if role not in roles]
-    if "arm" not in roles and "roughness" not in roles:
-        missing.append("roughness (or an ARM map)")
+    missing = _missing_roles(roles)
     if missing:
         found = ", ".join(f"{role} {path.name}" for role, path in roles.items()) or "nothing"
         raise MaterialError(f"{where}: incomplete material: found {found}; missing {', '.join(missing)}; "
@@ -480,7 +524,8 @@ def _usable_side(n: int) -> bool:
     return n >= MIN_SIZE and n & (n - 1) == 0
 
 
-def _sha256(path: Path) -> str:
+def file_sha256(path: Path) -> str:
+    """SHA-256 of a file's bytes, as `SourceFile.sha256` records it (a batch compares it to skip unchanged inputs)."""
     digest = hashlib.sha256()
     with path.open("rb") as stream:
         for chunk in iter(lambda: stream.read(1 << 20), b""):
@@ -582,7 +627,7 @@ def load_texture_set(files: MaterialFiles, name: str | None = None) -> TextureSe
         height=height,
         normal_convention=convention,
         arm_packed="arm" in roles,
-        files=[SourceFile(role=role, name=path.name, sha256=_sha256(path), channels=h.channels, width=h.width,
+        files=[SourceFile(role=role, name=path.name, sha256=file_sha256(path), channels=h.channels, width=h.width,
                           height=h.height, format=h.format, bits=h.bits) for role, (path, h) in headers.items()],
         defaults=defaults,
     )

@@ -1,0 +1,307 @@
+"""`bcf batch`: compress every material of an asset folder, resumably, reporting each one's outcome.
+
+The scan (`assets.scan_assets`) finds the materials; `plan_batch` gives each its output folder (mirroring the
+input tree); `previous_result` decides what an earlier run already did; `run_local` compresses the rest here
+(one material at a time, or `jobs` worker processes). `bcf batch --submit` uses the same plan and summary with
+the HTTP service doing the work (`bcf.service.client.run_remote`). A failing material becomes a `failed` item;
+the others go on.
+"""
+
+from __future__ import annotations
+
+import datetime
+import multiprocessing
+import os
+import queue as queue_module
+import threading
+import time
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Literal, Optional, Sequence
+
+from pydantic import BaseModel
+
+from bcf import __version__
+from bcf.core import compress, export, material, report
+from bcf.core.assets import AssetScan, FoundMaterial
+from bcf.core.options import JobOptions, resolve_options
+from bcf.core.training import TrainingProgress
+
+__all__ = ["BATCH_SUMMARY_FILE", "BatchItem", "BatchMaterial", "BatchSummary", "MaterialEvent", "format_summary",
+           "plan_batch", "previous_result", "run_local", "split_done", "summarise", "write_summary"]
+
+BATCH_SUMMARY_FILE = "batch-summary.json"
+Status = Literal["compressed", "skipped", "failed", "interrupted"]
+
+
+class BatchItem(BaseModel):
+    """One material's outcome."""
+
+    material: str
+    dir: str  # input folder, relative to the assets root
+    output: str  # output folder, relative to the batch output folder
+    status: Status
+    psnr: Optional[float] = None  # aggregate PSNR (dB) of the exported files, from report.json
+    ssim: Optional[float] = None
+    size_bytes: Optional[int] = None  # feature textures + decoder weights
+    seconds: Optional[float] = None  # wall time of this run's work on it (0 when skipped)
+    error: Optional[str] = None
+    job_id: Optional[str] = None  # with --submit: the service's job
+
+
+class BatchSummary(BaseModel):
+    generator: str
+    root: str
+    output: str
+    mode: Literal["local", "submit"]
+    options: JobOptions
+    started_at: str
+    seconds: float
+    counts: dict[str, int]
+    items: list[BatchItem]
+
+
+@dataclass(frozen=True)
+class BatchMaterial:
+    """A found material with absolute paths: its files and where its result goes."""
+
+    found: FoundMaterial
+    files: material.MaterialFiles
+    output: Path
+    output_name: str  # relative to the batch output folder, POSIX
+
+    def item(self, status: Status, **values: object) -> BatchItem:
+        return BatchItem(material=self.found.material, dir=self.found.dir, output=self.output_name, status=status,
+                         **values)
+
+
+@dataclass(frozen=True)
+class MaterialEvent:
+    """For progress displays: a material started, progressed (training) or finished (with its item)."""
+
+    material: str
+    kind: Literal["started", "progress", "finished"]
+    progress: Optional[TrainingProgress] = None
+    item: Optional[BatchItem] = None
+
+
+EventCallback = Callable[[MaterialEvent], None]
+
+
+# ---------------------------------------------------------------------------------------------- planning
+
+
+def _output_names(found: Sequence[FoundMaterial], root_name: str) -> list[str]:
+    """Each material's output folder, relative: its `output`, except that a folder's result must never
+    contain another's (compress replaces its folder whole), so a material whose output is an ancestor of
+    another's (a material folder with material sub-folders, or the root itself) goes one level down, into a
+    folder named after itself."""
+    names = [m.output for m in found]
+    result = []
+    for m, name in zip(found, names):
+        parent = name == "." or any(other != name and other.startswith(name + "/") for other in names)
+        if name == ".":
+            result.append(root_name)
+        elif parent:
+            result.append(f"{name}/{Path(name).name}")
+        else:
+            result.append(name)
+    return result
+
+
+def plan_batch(scan: AssetScan, root: Path, output: Path) -> list[BatchMaterial]:
+    root, output = Path(root).resolve(), Path(output).resolve()
+    names = _output_names(scan.materials, root.name)
+    return [BatchMaterial(found=m, files=m.material_files(root), output=output / name, output_name=name)
+            for m, name in zip(scan.materials, names)]
+
+
+def previous_result(entry: BatchMaterial, options: JobOptions) -> Optional[report.Report]:
+    """The report of an earlier successful output of this material made from the same file contents (SHA-256
+    per role, as recorded in the manifest), the same normal convention, the same resolved options (any
+    device) and at least the wanted baselines; else None."""
+    try:
+        previous = report.read_report(entry.output)
+        manifest = export.read_manifest(entry.output)
+    except (report.ReportError, export.ExportError, OSError):
+        return None
+    try:
+        hashes = {role: material.file_sha256(Path(path)) for role, path in entry.files.roles().items()}
+    except OSError:
+        return None
+    recorded = {f.role: f.sha256 for f in manifest.material.files}
+    wanted = resolve_options(options.compress_options()).model_dump(exclude={"device"})
+    convention = entry.files.normal_convention or "opengl"
+    same = (recorded == hashes and manifest.material.normal_convention == convention
+            and previous.options.model_dump(exclude={"device"}) == wanted
+            and set(options.baselines) <= set(previous.baselines))
+    return previous if same else None
+
+
+def result_item(entry: BatchMaterial, rep: report.Report, status: Status, seconds: float,
+                **values: object) -> BatchItem:
+    return entry.item(status, psnr=rep.aggregate.psnr.all, ssim=rep.aggregate.ssim.all,
+                      size_bytes=rep.size.total_bytes, seconds=round(seconds, 2), **values)
+
+
+def split_done(plan: Sequence[BatchMaterial], options: JobOptions,
+               force: bool) -> tuple[list[BatchMaterial], list[BatchItem]]:
+    """(materials to run, items of those skipped because their output is up to date). Incomplete materials
+    are run, so that they fail with their problem named."""
+    todo, skipped = [], []
+    for entry in plan:
+        previous = None if force or entry.found.problems else previous_result(entry, options)
+        if previous is None:
+            todo.append(entry)
+        else:
+            skipped.append(result_item(entry, previous, "skipped", 0.0))
+    return todo, skipped
+
+
+def check_replaceable(output: Path) -> None:
+    """Only an earlier bcf result (or an empty folder) may be replaced: never a user's own folder."""
+    if output.is_dir() and any(output.iterdir()) and not (output / export.MANIFEST_FILE).is_file():
+        raise compress.OutputExistsError(f"{output}: exists and is not a bcf output folder; move it away")
+
+
+# ------------------------------------------------------------------------------------------------ local
+
+
+def _error_text(exc: BaseException) -> str:
+    return str(exc) if isinstance(exc, (ValueError, OSError)) else f"{type(exc).__name__}: {exc}"
+
+
+def compress_one(entry: BatchMaterial, options: JobOptions,
+                 on_progress: Optional[Callable[[TrainingProgress], None]] = None) -> BatchItem:
+    """Compress one material into its output folder; any failure becomes a `failed` item."""
+    started = time.perf_counter()
+    try:
+        if entry.found.problems:
+            raise material.MaterialError("; ".join(entry.found.problems))
+        check_replaceable(entry.output)
+        texture_set = material.load_texture_set(entry.files, name=entry.found.material.replace("/", "_"))
+        rep = compress.compress_material(texture_set, options.compress_options(), entry.output,
+                                         progress=on_progress, overwrite=True, baselines=options.baselines)
+    except Exception as exc:  # one material's failure is reported, the batch goes on
+        return entry.item("failed", error=_error_text(exc), seconds=round(time.perf_counter() - started, 2))
+    return result_item(entry, rep, "compressed", time.perf_counter() - started)
+
+
+# Worker processes of `run_local(jobs > 1)`: the event queue and thread count come with the process.
+_events: Optional[multiprocessing.Queue] = None
+
+
+def _init_process(events: multiprocessing.Queue, threads: int) -> None:
+    import torch
+
+    global _events
+    _events = events
+    torch.set_num_threads(threads)
+
+
+def _compress_in_process(entry: BatchMaterial, options: JobOptions) -> BatchItem:
+    assert _events is not None
+    events = _events
+    name = entry.found.material
+    events.put(MaterialEvent(name, "started"))
+    return compress_one(entry, options, lambda p: events.put(MaterialEvent(name, "progress", p)))
+
+
+def run_local(todo: Sequence[BatchMaterial], options: JobOptions, jobs: int = 1,
+              events: Optional[EventCallback] = None) -> list[BatchItem]:
+    """Compress `todo` here: in this process when `jobs` is 1, else in `jobs` processes with the cores split
+    between them. Items come back in the order of `todo`."""
+    emit = events or (lambda event: None)
+    if jobs <= 1 or len(todo) <= 1:
+        items = []
+        for entry in todo:
+            emit(MaterialEvent(entry.found.material, "started"))
+            item = compress_one(entry, options, lambda p, n=entry.found.material: emit(MaterialEvent(n, "progress", p)))
+            emit(MaterialEvent(entry.found.material, "finished", item=item))
+            items.append(item)
+        return items
+    context = multiprocessing.get_context("spawn")  # fork after torch threads started is unsafe
+    messages: multiprocessing.Queue = context.Queue()
+    threads = max(1, (os.cpu_count() or 1) // jobs)
+    done: dict[int, BatchItem] = {}
+    pump = threading.Thread(target=_pump, args=(messages, emit), daemon=True)
+    pump.start()
+    try:
+        with ProcessPoolExecutor(jobs, mp_context=context, initializer=_init_process,
+                                 initargs=(messages, threads)) as pool:
+            futures: dict[Future, int] = {pool.submit(_compress_in_process, entry, options): i
+                                          for i, entry in enumerate(todo)}
+            pending = set(futures)
+            while pending:
+                finished, pending = wait(pending, return_when=FIRST_COMPLETED)
+                for future in finished:
+                    index = futures[future]
+                    entry = todo[index]
+                    try:
+                        item = future.result()
+                    except Exception as exc:  # the worker process itself died
+                        item = entry.item("failed", error=f"worker process failed: {_error_text(exc)}")
+                    done[index] = item
+                    messages.put(MaterialEvent(entry.found.material, "finished", item=item))
+    finally:
+        messages.put(None)
+        pump.join(timeout=5)
+    return [done[i] for i in range(len(todo))]
+
+
+def _pump(messages: multiprocessing.Queue, emit: EventCallback) -> None:
+    """Forward the worker processes' events, in arrival order, to the display."""
+    while True:
+        try:
+            event = messages.get(timeout=1.0)
+        except queue_module.Empty:
+            continue
+        if event is None:
+            return
+        emit(event)
+
+
+# ---------------------------------------------------------------------------------------------- summary
+
+
+def summarise(root: Path, output: Path, mode: Literal["local", "submit"], options: JobOptions, started_at: str,
+              seconds: float, items: Sequence[BatchItem]) -> BatchSummary:
+    ordered = sorted(items, key=lambda item: item.output)
+    counts = {status: sum(item.status == status for item in ordered)
+              for status in ("compressed", "skipped", "failed", "interrupted")}
+    return BatchSummary(generator=f"bcf {__version__}", root=str(Path(root).resolve()),
+                        output=str(Path(output).resolve()), mode=mode, options=options, started_at=started_at,
+                        seconds=round(seconds, 2), counts=counts, items=ordered)
+
+
+def now_iso() -> str:
+    return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+
+
+def write_summary(output: Path, summary: BatchSummary) -> Path:
+    path = Path(output) / BATCH_SUMMARY_FILE
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_name(f".{path.name}.tmp")
+    temporary.write_text(summary.model_dump_json(indent=2) + "\n")
+    temporary.replace(path)
+    return path
+
+
+def format_summary(summary: BatchSummary) -> str:
+    """The end-of-run table: material, status, PSNR, size, time; then the errors in full."""
+    rows = [("material", "status", "PSNR dB", "size KiB", "time s")]
+    for item in summary.items:
+        rows.append((item.material, item.status, f"{item.psnr:.2f}" if item.psnr is not None else "-",
+                     f"{item.size_bytes / 1024:.1f}" if item.size_bytes is not None else "-",
+                     f"{item.seconds:.1f}" if item.seconds is not None else "-"))
+    widths = [max(len(row[i]) for row in rows) for i in range(5)]
+    lines = ["  ".join(cell.ljust(w) if i < 2 else cell.rjust(w) for i, (cell, w) in enumerate(zip(row, widths)))
+             for row in rows]
+    lines.insert(1, "  ".join("-" * w for w in widths))
+    counts = ", ".join(f"{n} {status}" for status, n in summary.counts.items() if n)
+    lines.append(f"{len(summary.items)} materials: {counts or 'none'} in {summary.seconds:.0f} s")
+    for item in summary.items:
+        if item.error:
+            lines.append(f"  {item.material}: {item.error}")
+    return "\n".join(lines)

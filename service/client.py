@@ -1,0 +1,180 @@
+"""A small client of the bcf HTTP API, and `run_remote`: `bcf batch --submit` with the service doing the work.
+
+Materials are submitted at once (the service queues them and its workers decide the parallelism), then polled;
+each finished job's artifact zip is downloaded, checked (`export.load_export` verifies every file against the
+manifest) and put in place atomically, like a local `bcf compress` folder.
+"""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+import time
+import zipfile
+from pathlib import Path
+from typing import Any, Optional, Sequence
+
+import httpx
+
+from bcf.core import compress, export
+from bcf.core.batch import BatchItem, BatchMaterial, EventCallback, MaterialEvent, check_replaceable
+from bcf.core.options import JobOptions
+from bcf.core.training import TrainingProgress
+
+__all__ = ["JobRejected", "ServiceClient", "ServiceUnavailable", "run_remote"]
+
+FINAL = ("succeeded", "failed", "cancelled")
+
+
+class ServiceUnavailable(RuntimeError):
+    """The service cannot be reached or refuses us as a whole (wrong URL, token, server error)."""
+
+
+class JobRejected(ValueError):
+    """The service refused one material (its 4xx detail says why)."""
+
+
+class ServiceClient:
+    def __init__(self, url: str, token: Optional[str] = None, timeout: float = 300.0):
+        headers = {"Authorization": f"Bearer {token}"} if token else {}
+        self.url = url.rstrip("/")
+        self.http = httpx.Client(base_url=self.url, headers=headers, timeout=timeout)
+
+    def close(self) -> None:
+        self.http.close()
+
+    def _request(self, method: str, path: str, **kwargs: Any) -> httpx.Response:
+        try:
+            response = self.http.request(method, path, **kwargs)
+        except httpx.HTTPError as exc:
+            raise ServiceUnavailable(f"{self.url}: {exc}") from None
+        if response.status_code == 401:
+            raise ServiceUnavailable(f"{self.url}: {_detail(response)} (pass --token)")
+        if response.status_code >= 500:
+            raise ServiceUnavailable(f"{self.url}: HTTP {response.status_code}: {_detail(response)}")
+        return response
+
+    def check(self) -> None:
+        """Fail early on a wrong URL or token, before anything is uploaded."""
+        response = self._request("GET", "/v1/jobs", params={"limit": 1})
+        if response.status_code != 200:
+            raise ServiceUnavailable(f"{self.url}: HTTP {response.status_code}: {_detail(response)}")
+
+    def submit(self, entry: BatchMaterial, options: JobOptions) -> dict[str, Any]:
+        files = {role: (Path(path).name, Path(path).read_bytes()) for role, path in entry.files.roles().items()}
+        payload = options.model_dump(mode="json", exclude={"device"}, exclude_none=True)
+        if entry.files.normal_convention and "normal_convention" not in payload:
+            payload["normal_convention"] = entry.files.normal_convention
+        response = self._request("POST", "/v1/jobs", files=files, data={"options": _json(payload)})
+        if response.status_code not in (200, 202):
+            raise JobRejected(f"the service refused it (HTTP {response.status_code}): {_detail(response)}")
+        return response.json()
+
+    def job(self, job_id: str) -> dict[str, Any]:
+        response = self._request("GET", f"/v1/jobs/{job_id}")
+        if response.status_code != 200:
+            raise ServiceUnavailable(f"{self.url}: job {job_id}: HTTP {response.status_code}: {_detail(response)}")
+        return response.json()
+
+    def download_artifacts(self, job_id: str, target: Path) -> None:
+        try:
+            with self.http.stream("GET", f"/v1/jobs/{job_id}/artifacts") as response:
+                if response.status_code != 200:
+                    response.read()
+                    raise ServiceUnavailable(f"{self.url}: artifacts of job {job_id}: HTTP "
+                                             f"{response.status_code}: {_detail(response)}")
+                with target.open("wb") as out:
+                    for chunk in response.iter_bytes():
+                        out.write(chunk)
+        except httpx.HTTPError as exc:
+            raise ServiceUnavailable(f"{self.url}: {exc}") from None
+
+
+def _json(payload: dict[str, Any]) -> str:
+    import json
+
+    return json.dumps(payload)
+
+
+def _detail(response: httpx.Response) -> str:
+    try:
+        return str(response.json().get("detail", response.text))
+    except ValueError:
+        return response.text.strip()[:300]
+
+
+def _install(client: ServiceClient, job_id: str, output: Path) -> None:
+    """Download the job's artifacts, check them, and replace `output` with them atomically."""
+    output.parent.mkdir(parents=True, exist_ok=True)
+    staged = Path(tempfile.mkdtemp(prefix=f".{output.name}.partial-", dir=output.parent))
+    try:
+        archive = staged.with_suffix(".zip")
+        client.download_artifacts(job_id, archive)
+        with zipfile.ZipFile(archive) as z:
+            z.extractall(staged)
+        archive.unlink()
+        export.load_export(staged)  # every file against the manifest's SHA-256
+        compress.replace_folder(staged, output)
+    except BaseException:
+        shutil.rmtree(staged, ignore_errors=True)
+        staged.with_suffix(".zip").unlink(missing_ok=True)
+        raise
+
+
+def _progress(job: dict[str, Any]) -> Optional[TrainingProgress]:
+    p = job.get("progress") or {}
+    if job.get("state") != "running" or p.get("phase") is None:
+        return None
+    return TrainingProgress(phase=p["phase"], iteration=p["iteration"], total=p["total"], psnr=p.get("psnr") or 0.0,
+                            iterations_per_s=0.0, eta_s=p.get("eta_s") or 0.0, elapsed_s=0.0)
+
+
+def run_remote(todo: Sequence[BatchMaterial], options: JobOptions, client: ServiceClient,
+               events: Optional[EventCallback] = None, poll_s: float = 1.0) -> list[BatchItem]:
+    """Submit every material, then follow the jobs and install each result as it finishes. Items come back
+    in the order of `todo`. Raises ServiceUnavailable when the service as a whole cannot be used."""
+    emit = events or (lambda event: None)
+    client.check()
+    items: dict[int, BatchItem] = {}
+    running: dict[int, tuple[str, float]] = {}  # index -> (job id, submitted at)
+    for index, entry in enumerate(todo):
+        name = entry.found.material
+        try:
+            if entry.found.problems:
+                raise JobRejected("; ".join(entry.found.problems))
+            check_replaceable(entry.output)
+            job = client.submit(entry, options)
+        except (JobRejected, compress.OutputExistsError, OSError) as exc:
+            items[index] = entry.item("failed", error=str(exc))
+            emit(MaterialEvent(name, "finished", item=items[index]))
+            continue
+        running[index] = (job["id"], time.perf_counter())
+        emit(MaterialEvent(name, "started"))
+    while running:
+        for index, (job_id, submitted) in list(running.items()):
+            entry = todo[index]
+            job = client.job(job_id)
+            if job["state"] not in FINAL:
+                progress = _progress(job)
+                if progress is not None:
+                    emit(MaterialEvent(entry.found.material, "progress", progress))
+                continue
+            seconds = round(time.perf_counter() - submitted, 2)
+            if job["state"] == "succeeded":
+                try:
+                    _install(client, job_id, entry.output)
+                    result = job["result"]
+                    item = entry.item("compressed", psnr=result["psnr"], ssim=result["ssim"],
+                                      size_bytes=result["size_bytes"], seconds=seconds, job_id=job_id)
+                except (export.ExportError, zipfile.BadZipFile, OSError) as exc:
+                    item = entry.item("failed", error=f"result of job {job_id} unusable: {exc}", seconds=seconds,
+                                      job_id=job_id)
+            else:
+                item = entry.item("failed", error=f"job {job_id} {job['state']}: {job.get('error') or 'no message'}",
+                                  seconds=seconds, job_id=job_id)
+            items[index] = item
+            del running[index]
+            emit(MaterialEvent(entry.found.material, "finished", item=item))
+        if running:
+            time.sleep(poll_s)
+    return [items[i] for i in range(len(todo))]
