@@ -27,6 +27,7 @@ COMMANDS = {
     "bench": "benchmark: compress every material of a folder at several feature sizes with the BC/ASTC baselines "
              "and write a Table 2-style summary",
     "check": "regression gate: compare a report.json with a stored baseline per mip and texture (exit 1 if worse)",
+    "shader": "generate a GLSL or HLSL decoder (BC6H sampling + the MLP with baked weights) for a compressed folder",
 }
 ROLE_OPTIONS = ("albedo", "normal", "arm", "ao", "roughness", "metalness")
 SCHEDULE_OPTIONS = ("phase1_iterations", "phase2_iterations", "batch_size", "hidden", "block_mode")
@@ -118,6 +119,16 @@ def add_commands(commands: argparse._SubParsersAction, user_error: type[Exceptio
                    help="allowed PSNR drop per mip and texture (default: 0.25)")
     p.add_argument("--update", action="store_true", help="write the report as the new baseline instead")
     p.set_defaults(handler=functools.partial(guard, handler=_check))
+
+
+    p = commands.add_parser("shader", help=COMMANDS["shader"], description=COMMANDS["shader"] + ".",
+                            epilog="The code declares the four feature textures and defines bcf_decode(uv) (hardware LOD), "
+                                   "bcf_decode_lod(uv, s) and bcf_decode_grad(uv, dx, dy); docs/FORMAT.md explains how to "
+                                   "bind and call it.")
+    p.add_argument("folder", metavar="OUT", help="a folder written by 'bcf compress'")
+    p.add_argument("--lang", choices=("glsl", "hlsl"), required=True, help="shading language")
+    p.add_argument("-o", "--output", metavar="FILE", type=Path, help="write here instead of to standard output")
+    p.set_defaults(handler=functools.partial(guard, handler=_shader))
 
 
 def _guarded(args: argparse.Namespace, handler: Callable[[argparse.Namespace], int],
@@ -330,3 +341,16 @@ def _check(args: argparse.Namespace) -> int:
     rows = check.compare_reports(current, report.read_report(args.baseline), args.tolerance_db)
     _say(check.format_check(rows, args.tolerance_db))
     return 1 if any(r.worse for r in rows) else 0
+
+
+def _shader(args: argparse.Namespace) -> int:
+    from bcf.core import shader
+
+    source = shader.shader_source(Path(args.folder), args.lang)
+    if args.output is None:
+        sys.stdout.write(source)
+        return 0
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(source)
+    print(f"wrote {args.output} ({args.lang.upper()}, {len(source.splitlines())} lines)", file=sys.stderr)
+    return 0
