@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Iterator, NoReturn, Optional, Sequence
 
 from bcf import __version__
-from bcf import batch_cli, material_cli, service_cli
+from bcf import batch_cli, material_cli, preview_cli, service_cli
 from bcf.core import containers, images
 
 if TYPE_CHECKING:
@@ -78,6 +78,7 @@ def build_parser() -> argparse.ArgumentParser:
     material_cli.add_commands(groups, UserError, _positive_int, _non_negative_int)
     batch_cli.add_commands(groups, UserError, _positive_int, _non_negative_int)
     service_cli.add_commands(groups, UserError, _positive_int, _non_negative_int)
+    preview_cli.add_commands(groups, UserError, _positive_int, _non_negative_int)
     bc6h = groups.add_parser("bc6h", help="BC6H textures: encode, decode, info",
                              description="BC6H (HDR, 3 channels, 8 bits per texel) textures in DDS or KTX2.")
     commands = bc6h.add_subparsers(title="commands", metavar="COMMAND", dest="command", required=True)
