@@ -114,6 +114,8 @@ class BatchProgress:
                 self.running[event.material] = "starting"
                 if not self.tty:
                     self._line(f"started {event.material}")
+            elif event.kind == "progress" and event.material in self.running and event.stage:
+                self.running[event.material] = event.stage
             elif event.kind == "progress" and event.material in self.running and event.progress:
                 p = event.progress
                 self.running[event.material] = (f"phase {p.phase}/2 {p.iteration}/{p.total} {p.psnr:5.2f} dB "
@@ -123,7 +125,7 @@ class BatchProgress:
                 self.finished.append(event.item)
                 if not self.tty:
                     self._line(f"{event.item.status} {event.material}" + _outcome(event.item))
-            self._draw(force=event.kind != "progress")
+            self._draw(force=event.kind != "progress" or event.stage is not None)
 
     def _overall(self) -> str:
         done = len(self.finished)

@@ -84,6 +84,7 @@ class MaterialEvent:
     kind: Literal["started", "progress", "finished"]
     progress: Optional[TrainingProgress] = None
     item: Optional[BatchItem] = None
+    stage: Optional[str] = None  # after training: "evaluating the exported files", "writing report.html", ...
 
 
 EventCallback = Callable[[MaterialEvent], None]
@@ -173,7 +174,8 @@ def _error_text(exc: BaseException) -> str:
 
 
 def compress_one(entry: BatchMaterial, options: JobOptions,
-                 on_progress: Optional[Callable[[TrainingProgress], None]] = None) -> BatchItem:
+                 on_progress: Optional[Callable[[TrainingProgress], None]] = None,
+                 on_stage: Optional[Callable[[str], None]] = None) -> BatchItem:
     """Compress one material into its output folder; any failure becomes a `failed` item."""
     started = time.perf_counter()
     try:
@@ -182,7 +184,8 @@ def compress_one(entry: BatchMaterial, options: JobOptions,
         check_replaceable(entry.output)
         texture_set = material.load_texture_set(entry.files, name=entry.found.material.replace("/", "_"))
         rep = compress.compress_material(texture_set, options.compress_options(), entry.output,
-                                         progress=on_progress, overwrite=True, baselines=options.baselines)
+                                         progress=on_progress, overwrite=True, baselines=options.baselines,
+                                         note=on_stage)
     except Exception as exc:  # one material's failure is reported, the batch goes on
         return entry.item("failed", error=_error_text(exc), seconds=round(time.perf_counter() - started, 2))
     return result_item(entry, rep, "compressed", time.perf_counter() - started)
@@ -205,7 +208,11 @@ def _compress_in_process(entry: BatchMaterial, options: JobOptions) -> BatchItem
     events = _events
     name = entry.found.material
     events.put(MaterialEvent(name, "started"))
-    return compress_one(entry, options, lambda p: events.put(MaterialEvent(name, "progress", p)))
+    item = compress_one(entry, options, lambda p: events.put(MaterialEvent(name, "progress", p)),
+                        lambda stage: events.put(MaterialEvent(name, "progress", stage=stage)))
+    # Sent from here, on the same queue as "started", so a display never sees the next material start first.
+    events.put(MaterialEvent(name, "finished", item=item))
+    return item
 
 
 def run_local(todo: Sequence[BatchMaterial], options: JobOptions, jobs: int = 1,
@@ -217,7 +224,9 @@ def run_local(todo: Sequence[BatchMaterial], options: JobOptions, jobs: int = 1,
         items = []
         for entry in todo:
             emit(MaterialEvent(entry.found.material, "started"))
-            item = compress_one(entry, options, lambda p, n=entry.found.material: emit(MaterialEvent(n, "progress", p)))
+            name = entry.found.material
+            item = compress_one(entry, options, lambda p, n=name: emit(MaterialEvent(n, "progress", p)),
+                                lambda stage, n=name: emit(MaterialEvent(n, "progress", stage=stage)))
             emit(MaterialEvent(entry.found.material, "finished", item=item))
             items.append(item)
         return items
@@ -240,10 +249,10 @@ def run_local(todo: Sequence[BatchMaterial], options: JobOptions, jobs: int = 1,
                     entry = todo[index]
                     try:
                         item = future.result()
-                    except Exception as exc:  # the worker process itself died
+                    except Exception as exc:  # the worker process itself died: nobody announced the end
                         item = entry.item("failed", error=f"worker process failed: {_error_text(exc)}")
+                        messages.put(MaterialEvent(entry.found.material, "finished", item=item))
                     done[index] = item
-                    messages.put(MaterialEvent(entry.found.material, "finished", item=item))
     finally:
         messages.put(None)
         pump.join(timeout=5)

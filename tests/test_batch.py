@@ -239,6 +239,8 @@ def test_the_terminal_display_redraws_overall_and_per_material_lines() -> None:
     display = BatchProgress(total=2, jobs=1, stream=screen)
     display(MaterialEvent("wood", "started"))
     display(MaterialEvent("wood", "progress", TrainingProgress(2, 150, 300, 31.5, 50.0, 3.0, 9.0)))
+    display(MaterialEvent("wood", "progress", stage="evaluating the exported files"))
+    assert "  wood: evaluating the exported files" in screen.getvalue()
     done = BatchItem(material="wood", dir="wood", output="wood", status="compressed", psnr=31.9, size_bytes=2048,
                      seconds=12.0)
     display(MaterialEvent("wood", "finished", item=done))
