@@ -112,6 +112,7 @@ class Worker:
         if job.state != "queued":
             return None
         return job.model_copy(update={"state": "running", "attempts": job.attempts + 1, "worker": self.id,
+                                      "options": job.options.model_copy(update={"device": self.device}),
                                       "started_at": utc_now(), "heartbeat_at": utc_now(), "error": None,
                                       "progress": JobProgress(stage="loading")})
 
