@@ -99,16 +99,15 @@ def _output_names(found: Sequence[FoundMaterial], root_name: str) -> list[str]:
     another's (a material folder with material sub-folders, or the root itself) goes one level down, into a
     folder named after itself."""
     names = [m.output for m in found]
-    result = []
-    for m, name in zip(found, names):
-        parent = name == "." or any(other != name and other.startswith(name + "/") for other in names)
+
+    def placed(name: str) -> str:
         if name == ".":
-            result.append(root_name)
-        elif parent:
-            result.append(f"{name}/{Path(name).name}")
-        else:
-            result.append(name)
-    return result
+            return root_name
+        if any(other.startswith(name + "/") for other in names):
+            return f"{name}/{Path(name).name}"
+        return name
+
+    return [placed(name) for name in names]
 
 
 def plan_batch(scan: AssetScan, root: Path, output: Path) -> list[BatchMaterial]:

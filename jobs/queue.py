@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import datetime
 import shutil
+from pathlib import Path
 from typing import Callable, Optional
 
 from huey import Huey, RedisHuey, SqliteHuey
@@ -115,10 +116,10 @@ class JobQueue:
                                           "progress": job.progress.model_copy(update={"stage": "queued"})})
         return change
 
-    def artifacts_path(self, job_id: str):
+    def artifacts_path(self, job_id: str) -> Path:
         return self.settings.artifacts_dir / job_id
 
-    def inputs_path(self, job_id: str):
+    def inputs_path(self, job_id: str) -> Path:
         return self.settings.inputs_dir / job_id
 
     def remove_partial_outputs(self, job_id: str) -> None:

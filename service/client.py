@@ -7,6 +7,7 @@ manifest) and put in place atomically, like a local `bcf compress` folder.
 
 from __future__ import annotations
 
+import json
 import shutil
 import tempfile
 import time
@@ -65,7 +66,7 @@ class ServiceClient:
         payload = options.model_dump(mode="json", exclude={"device"}, exclude_none=True)
         if entry.files.normal_convention and "normal_convention" not in payload:
             payload["normal_convention"] = entry.files.normal_convention
-        response = self._request("POST", "/v1/jobs", files=files, data={"options": _json(payload)})
+        response = self._request("POST", "/v1/jobs", files=files, data={"options": json.dumps(payload)})
         if response.status_code not in (200, 202):
             raise JobRejected(f"the service refused it (HTTP {response.status_code}): {_detail(response)}")
         return response.json()
@@ -88,12 +89,6 @@ class ServiceClient:
                         out.write(chunk)
         except httpx.HTTPError as exc:
             raise ServiceUnavailable(f"{self.url}: {exc}") from None
-
-
-def _json(payload: dict[str, Any]) -> str:
-    import json
-
-    return json.dumps(payload)
 
 
 def _detail(response: httpx.Response) -> str:
