@@ -126,18 +126,13 @@ class HeadlessGL:
                              out.ctypes.data_as(ctypes.c_void_p))
         return out.view(np.float16)
 
-    def float_texture(self, image: np.ndarray, address: Address = "wrap", mipmaps: bool = True) -> Any:
+    def float_texture(self, image: np.ndarray, address: Address = "wrap") -> Any:
         """An (h, w, c) float image (c = 1..4) as a float32 texture, mipmapped by the driver (box filter)."""
         h, w, c = image.shape
         with self.ctx:
             texture = self.ctx.texture((w, h), c, np.ascontiguousarray(image, dtype="f4").tobytes(), dtype="f4")
             texture.repeat_x = texture.repeat_y = address == "wrap"
-            if mipmaps:
-                texture.build_mipmaps()
-            else:
-                import moderngl
-
-                texture.filter = (moderngl.LINEAR, moderngl.LINEAR)
+            texture.build_mipmaps()
         return texture
 
     # -------------------------------------------------------------------------------------------- drawing

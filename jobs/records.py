@@ -79,10 +79,6 @@ class Job(_Model):
     result: Optional[JobResult] = None
 
     @property
-    def final(self) -> bool:
-        return self.state in FINAL_STATES
-
-    @property
     def duration_s(self) -> Optional[float]:
         if self.started_at is None or self.finished_at is None:
             return None

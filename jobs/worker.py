@@ -15,7 +15,7 @@ import time
 import traceback
 import uuid
 from pathlib import Path
-from typing import Optional
+from typing import Any, Optional
 
 from bcf.core import compress, material
 from bcf.core.options import resolve_options
@@ -103,8 +103,13 @@ class Worker:
         self.id = f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex[:6]}"
         self.queue = JobQueue(settings, runner=self.run_job)
         self.shutdown = threading.Event()
+        self._consumer_stop: Optional[Any] = None  # huey's stop flag while `serve` runs
         self._held: set[str] = set()
         self._lock = threading.Lock()
+
+    def stopping(self) -> bool:
+        """A shutdown was asked for: by a signal to the consumer, or by `serve` ending."""
+        return self.shutdown.is_set() or (self._consumer_stop is not None and self._consumer_stop.is_set())
 
     # ------------------------------------------------------------------------------------------- one job
 
@@ -137,8 +142,8 @@ class Worker:
 
     def run_job(self, job_id: str) -> None:
         """The Huey task: claim the job, compress, record the outcome. Never raises for a job's own failure."""
-        if self.shutdown.is_set():
-            return  # the message is re-sent by `recover` or the job is released
+        if self.stopping():
+            return  # the job stays queued and its message is re-sent by `recover`
         job = self.queue.store.update(job_id, self._claim)
         if job is None or job.state != "running" or job.worker != self.id:
             return  # cancelled, or already run: a duplicate message
@@ -164,10 +169,10 @@ class Worker:
                 texture_set = load_job_material(job, self.queue.inputs_path(job.id))
                 report = compress.compress_material(
                     texture_set, resolved, output, progress=monitor.on_progress,
-                    should_stop=lambda: monitor.cancel.is_set() or self.shutdown.is_set(), overwrite=True,
+                    should_stop=lambda: monitor.cancel.is_set() or self.stopping(), overwrite=True,
                     baselines=job.options.baselines, note=monitor.on_note)
             except TrainingStopped:
-                if self.shutdown.is_set() and not monitor.cancel.is_set():
+                if self.stopping() and not monitor.cancel.is_set():
                     self.release(job.id)
                     return
                 self._finish(job.id, state="cancelled", progress=monitor.progress.model_copy(
@@ -207,15 +212,7 @@ class Worker:
         consumer = self.queue.huey.create_consumer(workers=concurrency, worker_type="thread", periodic=False,
                                                    initial_delay=0.1, backoff=1.15, max_delay=1.0,
                                                    graceful_signal="TERM")
-        stop_flag = consumer.stop_flag
-        original_is_set = stop_flag.is_set
-
-        def stopping() -> bool:  # huey's stop flag also tells our jobs to stop
-            if original_is_set():
-                self.shutdown.set()
-            return original_is_set()
-
-        stop_flag.is_set = stopping  # type: ignore[method-assign]
+        self._consumer_stop = consumer.stop_flag  # set by huey on a signal: our jobs stop too
         log.info("worker %s: %s mode, device %s, %d at a time, data in %s", self.id,
                  "farm (Redis)" if self.settings.farm_mode else "embedded (SQLite)", self.device, concurrency,
                  self.settings.data_dir)

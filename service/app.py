@@ -51,9 +51,13 @@ class _BodyTooLarge(Exception):
 OPEN_PATHS = frozenset({"/healthz", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json"})
 
 
+def _token_accepted(given: str, tokens: list[str]) -> bool:
+    return any(secrets.compare_digest(given.encode(), t.encode()) for t in tokens)
+
+
 def _token_ok(headers: dict[bytes, bytes], tokens: list[str]) -> bool:
     scheme, _, given = headers.get(b"authorization", b"").decode("latin-1").partition(" ")
-    return scheme.lower() == "bearer" and any(secrets.compare_digest(given.encode(), t.encode()) for t in tokens)
+    return scheme.lower() == "bearer" and _token_accepted(given, tokens)
 
 
 class RequestGate:
@@ -146,8 +150,7 @@ def create_app(settings: Settings, queue: Optional[JobQueue] = None) -> FastAPI:
         OpenAPI shows the bearer scheme."""
         if not settings.api_tokens:
             return  # no tokens: `bcf serve` listens on 127.0.0.1 only
-        given = credentials.credentials if credentials else ""
-        if not any(secrets.compare_digest(given.encode(), t.encode()) for t in settings.api_tokens):
+        if not _token_accepted(credentials.credentials if credentials else "", settings.api_tokens):
             raise HTTPException(401, UNAUTHORISED, headers={"WWW-Authenticate": "Bearer"})
 
     def find(job_id: str) -> Job:

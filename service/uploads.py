@@ -193,23 +193,23 @@ def submit_upload(queue: JobQueue, uploads: list[UploadedFile], options: JobOpti
             except material.MaterialError as exc:
                 raise BadUpload(422, _client_message(str(exc), names)) from None
             originals: dict[str, str] = {}
+            files: dict[str, Path] = {}
             for role, path in found.roles().items():
                 target = stored / f"{role}{Path(path).suffix.lower()}"
-                shutil.copyfile(path, target)
-                originals[role] = Path(path).name
+                Path(path).rename(target)  # the staging folder is one file system: no second copy
+                originals[role], files[role] = Path(path).name, target
                 names[str(target)] = f"{role} ({Path(path).name})"
             convention = found.normal_convention
         else:
-            originals = {}
+            originals, files = {}, {}
             for field, upload in by_field.items():
                 target, shown = _store_role_file(upload, stored, limit)
-                originals[field] = shown
+                originals[field], files[field] = shown, target
                 names[str(target)] = f"{field} ({shown})"
             albedo_name = by_field["albedo"].filename if "albedo" in by_field else None
             name = _safe_name(Path(albedo_name).stem if albedo_name else None, "material")
             convention = options.normal_convention or (material.normal_convention_from_name(
                 by_field["normal"].filename or "") if "normal" in by_field else None)
-        files = {role: next(stored.glob(f"{role}.*")) for role in originals}
         try:
             texture_set = material.load_texture_set(material.MaterialFiles(**files, normal_convention=convention),
                                                     name=name)

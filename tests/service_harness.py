@@ -132,8 +132,11 @@ class Server(Process):
 
     def wait_for_job(self, job_id: str, condition: Callable[[dict[str, Any]], bool], timeout: float, what: str,
                      logs: tuple[Path, ...] = ()) -> dict[str, Any]:
-        return wait_until(lambda: (lambda j: j if condition(j) else None)(self.job(job_id)), timeout,
-                          f"job {job_id} {what}", logs=(self.log, *logs))
+        def matching() -> Optional[dict[str, Any]]:
+            job = self.job(job_id)
+            return job if condition(job) else None
+
+        return wait_until(matching, timeout, f"job {job_id} {what}", logs=(self.log, *logs))
 
     def wait_finished(self, job_id: str, timeout: float = 120.0, logs: tuple[Path, ...] = ()) -> dict[str, Any]:
         return self.wait_for_job(job_id, lambda j: j["state"] in ("succeeded", "failed", "cancelled"), timeout,
