@@ -13,8 +13,10 @@ import argparse
 import json
 from pathlib import Path
 
-from bcf.core import baselines, material
-from bcf.core.sampling import ReferenceMaterial
+from bcf.core.material.texture_set import load_material
+from bcf.core.report import baselines
+from bcf.core.options import parse_baselines
+from bcf.core.fit.sampling import ReferenceMaterial
 
 
 def main() -> None:
@@ -24,10 +26,10 @@ def main() -> None:
     parser.add_argument("--baselines", default="bc,astc", help="as for bcf compress --baselines (default: bc,astc)")
     args = parser.parse_args()
 
-    texture_set = material.load_material(args.material)
+    texture_set = load_material(args.material)
     reference = ReferenceMaterial(texture_set.channels, "wrap")
     results = {}
-    for name in baselines.parse_baselines(args.baselines):
+    for name in parse_baselines(args.baselines):
         scored, _ = baselines.run_codec_baseline(name, texture_set.channels, reference)
         results[name] = scored.model_dump()
         a = scored.aggregate

@@ -17,9 +17,11 @@ from pathlib import Path
 
 import torch
 
-from bcf.core import material, model as nm, training
+from bcf.core.material.texture_set import load_material
+from bcf.core.fit import model as nm
+from bcf.core.fit import training
 from bcf.core.options import CompressOptions, resolve_options
-from bcf.core.sampling import ReferenceMaterial, trilinear_levels
+from bcf.core.fit.sampling import ReferenceMaterial, trilinear_levels
 
 
 def time_iterations(model: nm.NeuralMaterial, reference: ReferenceMaterial, batch: int, iterations: int,
@@ -77,7 +79,7 @@ def main() -> None:
     parser.add_argument("--iterations", type=int, default=20)
     parser.add_argument("--block-mode", type=int, choices=(10, 11))
     args = parser.parse_args()
-    texture_set = material.load_material(args.material)
+    texture_set = load_material(args.material)
     extra = {"block_mode": args.block_mode} if args.block_mode else {}
     options = resolve_options(CompressOptions(preset=args.preset, features=args.features, phase1_iterations=20,
                                               phase2_iterations=1, **extra))

@@ -17,9 +17,12 @@ import json
 import time
 from pathlib import Path
 
-from bcf.core import material, metrics, report, training
+from bcf.core.material.texture_set import load_material
+from bcf.core.report import metrics
+from bcf.core.report import report_json as report
+from bcf.core.fit import training
 from bcf.core.options import CompressOptions, resolve_options
-from bcf.core.sampling import ReferenceMaterial
+from bcf.core.fit.sampling import ReferenceMaterial
 
 
 def main() -> None:
@@ -39,7 +42,7 @@ def main() -> None:
     parser.add_argument("-o", "--output", type=Path)
     args = parser.parse_args()
 
-    texture_set = material.load_material(args.material)
+    texture_set = load_material(args.material)
     overrides = {k: v for k, v in {"phase1_iterations": args.phase1_iterations,
                                    "phase2_iterations": args.phase2_iterations, "block_mode": args.block_mode,
                                    "batch_size": args.batch_size}.items() if v is not None}

@@ -1,13 +1,10 @@
 """bcf: neural block-compressed features (BC6H) for PBR material texture sets.
 
-The import package's sub-packages live in the repository's top-level folders:
-`bcf.core` (training and export library), `bcf.jobs` (queue and workers), `bcf.service` (HTTP API).
+The import package's sub-packages live in the repository's top-level folders: `bcf.core` (the library),
+`bcf.engine` (shaders, GL, preview), `bcf.jobs` (queue, workers, batch, bench), `bcf.service` (HTTP API).
 This folder holds the package root and the command-line interface.
 """
 
-from importlib.metadata import PackageNotFoundError, version
+from bcf.core import __version__
 
-try:
-    __version__ = version("bcf")
-except PackageNotFoundError:  # running from a source tree that was never installed
-    __version__ = "0.0.0+unknown"
+__all__ = ["__version__"]

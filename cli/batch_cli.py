@@ -17,9 +17,11 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable, TextIO
 
+from bcf.material_cli import cli_message
+
 if TYPE_CHECKING:
-    from bcf.core.assets import AssetScan
-    from bcf.core.batch import BatchItem, MaterialEvent
+    from bcf.core.material.assets import AssetScan
+    from bcf.jobs.batch import BatchItem, MaterialEvent
 
 COMMAND = ("compress every material found in an asset folder (resumable), locally or on the HTTP service, "
            "with a summary")
@@ -168,12 +170,12 @@ def _outcome(item: "BatchItem") -> str:
 
 
 def _options(args: argparse.Namespace):
-    from bcf.core import baselines as codecs
-    from bcf.core.material import MaterialError
+    from bcf.core.options import parse_baselines
+    from bcf.core.material.roles import MaterialError
     from bcf.core.options import JobOptions
 
     try:
-        baselines = codecs.parse_baselines(args.baselines) if args.baselines else []
+        baselines = parse_baselines(args.baselines) if args.baselines else []
     except ValueError as exc:
         raise MaterialError(f"--baselines: {exc}") from None
     overrides = {k: getattr(args, k) for k in ("phase1_iterations", "phase2_iterations", "batch_size")
@@ -183,7 +185,9 @@ def _options(args: argparse.Namespace):
 
 
 def _batch(args: argparse.Namespace, user_error: type[Exception]) -> int:
-    from bcf.core import assets, batch, material
+    from bcf.core.material import assets
+    from bcf.jobs import batch
+    from bcf.core.material.roles import MaterialError
 
     root = Path(args.assets)
     if not root.is_dir():
@@ -206,8 +210,8 @@ def _batch(args: argparse.Namespace, user_error: type[Exception]) -> int:
                          "_Roughness, *_BaseColor/_Normal/_OcclusionRoughnessMetallic, ...); try --list")
     try:
         options = _options(args)
-    except material.MaterialError as exc:
-        raise user_error(str(exc)) from None
+    except MaterialError as exc:
+        raise user_error(cli_message(exc)) from None
     if args.device == "cuda" and not args.submit:
         import torch
 
@@ -262,7 +266,7 @@ def _batch(args: argparse.Namespace, user_error: type[Exception]) -> int:
 def _after_interrupt(entry, options) -> "BatchItem":
     """A material the interrupt caught: finished if its output was completed just before (the result is in
     place even if the display never heard of it), else interrupted."""
-    from bcf.core import batch
+    from bcf.jobs import batch
 
     previous = batch.previous_result(entry, options)
     return entry.item("interrupted") if previous is None else batch.result_item(entry, previous, "compressed", 0.0)
@@ -274,4 +278,4 @@ def _remote(todo, options, client, on_event, user_error, unavailable):
     try:
         return run_remote(todo, options, client, on_event)
     except unavailable as exc:
-        raise user_error(str(exc)) from None
+        raise user_error(cli_message(exc)) from None

@@ -16,7 +16,9 @@ from typing import TYPE_CHECKING, Callable, Iterator, NoReturn, Optional, Sequen
 
 from bcf import __version__
 from bcf import batch_cli, material_cli, preview_cli, service_cli
-from bcf.core import containers, images
+from bcf.core.codec import containers
+from bcf.core.errors import InputError
+from bcf.core.material import images
 
 if TYPE_CHECKING:
     import numpy as np
@@ -193,7 +195,7 @@ def _encode(args: argparse.Namespace) -> int:
     if count > full:
         raise UserError(f"--levels {count}: {args.image} is {_size(width, height)}, which has at most {full} "
                         "mip levels")
-    from bcf.core import bc6h_tools  # after the cheap checks: bad input fails without loading torch
+    from bcf.core.codec import textures as bc6h_tools  # after the cheap checks: bad input fails without loading torch
 
     image, problems = bc6h_tools.to_bc6h_range(source, args.signed)
     for problem in problems:
@@ -222,7 +224,7 @@ def _encode(args: argparse.Namespace) -> int:
 
 def _print_verification(path: Path, mips: Sequence["np.ndarray"]) -> None:
     """Read `path` back and print the per-level quality against the encoder's input mips."""
-    from bcf.core import bc6h_tools
+    from bcf.core.codec import textures as bc6h_tools
 
     checks = bc6h_tools.verify_texture(containers.read_texture(path), mips)
     _say(f"verify {path} (decoded vs. source mip; PSNR peak = max(1, source max)):")
@@ -239,7 +241,7 @@ def _decode(args: argparse.Namespace) -> int:
     if args.level >= len(texture.levels):
         raise UserError(f"{args.file}: --level {args.level} does not exist; the file has levels "
                         f"0..{len(texture.levels) - 1}")
-    from bcf.core import bc6h  # after the cheap checks: bad input fails without loading torch
+    from bcf.core.codec import bc6h
 
     width, height = texture.level_size(args.level)
     decoded = bc6h.decode_image(texture.levels[args.level], width, height, texture.signed)
@@ -254,7 +256,7 @@ def _decode(args: argparse.Namespace) -> int:
 
 def _info(args: argparse.Namespace) -> int:
     texture = _read_texture(args.file)
-    from bcf.core import bc6h_tools  # after the cheap checks: bad input fails without loading torch
+    from bcf.core.codec import textures as bc6h_tools  # after the cheap checks: bad input fails without loading torch
 
     histogram = bc6h_tools.mode_histogram(texture.levels[0])
     total = sum(histogram.values())
@@ -287,7 +289,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     """Run `bcf` with `argv` (default: sys.argv[1:]) and return the exit code."""
     # Errors the user can fix; anything else is a bug in bcf and keeps its traceback.
     user_errors: tuple[type[BaseException], ...] = (
-        UserError, OSError, containers.ContainerError, images.ImageReadError, images.ImageWriteError)
+        UserError, OSError, InputError)
     try:
         args = build_parser().parse_args(argv)
         handler: Callable[[argparse.Namespace], int] = args.handler
@@ -295,7 +297,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except SystemExit as exc:  # --help and --version end through parser.exit()
         return exc.code if isinstance(exc.code, int) else 0
     except user_errors as exc:
-        print(f"bcf: error: {_error_message(exc)}", file=sys.stderr)
+        print(f"bcf: error: {material_cli.cli_message(exc) if isinstance(exc, InputError) else _error_message(exc)}",
+              file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("bcf: interrupted", file=sys.stderr)

@@ -13,10 +13,11 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable, TextIO, TypeVar
 
-from bcf.core import material as material_io
+from bcf.core.material.roles import MaterialError, MaterialFiles
+from bcf.core.material.texture_set import TextureSet, load_material
 
 if TYPE_CHECKING:
-    from bcf.core.training import TrainingProgress
+    from bcf.core.fit.training import TrainingProgress
 
 T = TypeVar("T")
 
@@ -133,13 +134,27 @@ def add_commands(commands: argparse._SubParsersAction, user_error: type[Exceptio
 
 def _guarded(args: argparse.Namespace, handler: Callable[[argparse.Namespace], int],
              user_error: type[Exception]) -> int:
-    from bcf.core import bench, check, compress, export, report, training  # torch: only when a command runs
+    from bcf.jobs import bench  # torch: only when a command runs
+    from bcf.core.report import check
+    from bcf.core import pipeline as compress
+    from bcf.core.export import artifacts as export
+    from bcf.core.report import report_json as report
+    from bcf.core.fit import training
 
     try:
         return handler(args)
-    except (material_io.MaterialError, export.ExportError, compress.OutputExistsError,
+    except (MaterialError, export.ExportError, compress.OutputExistsError,
             training.DeviceUnavailableError, check.CheckError, report.ReportError, bench.BenchError) as exc:
-        raise user_error(str(exc)) from None
+        raise user_error(cli_message(exc)) from None
+
+
+def cli_message(exc: Exception) -> str:
+    """A library error worded for the command line: options as flags (`--force`)."""
+    from bcf.core import InputError
+
+    if isinstance(exc, InputError):
+        return exc.message(lambda names: "/".join("--" + n.replace("_", "-") for n in names))
+    return str(exc)
 
 
 def _say(message: str = "") -> None:
@@ -207,12 +222,12 @@ def _duration(seconds: float) -> str:
 # --------------------------------------------------------------------------------------------- commands
 
 
-def _explicit_files(args: argparse.Namespace) -> material_io.MaterialFiles:
+def _explicit_files(args: argparse.Namespace) -> MaterialFiles:
     roles = {role: getattr(args, role) for role in ROLE_OPTIONS if getattr(args, role) is not None}
-    return material_io.MaterialFiles(**roles, normal_convention=args.normal_convention)
+    return MaterialFiles(**roles, normal_convention=args.normal_convention)
 
 
-def _describe(texture_set: material_io.TextureSet) -> list[str]:
+def _describe(texture_set: TextureSet) -> list[str]:
     source = texture_set.source
     lines = [f"material {source.name}: {source.width}x{source.height}, normal convention "
              f"{source.normal_convention}, ARM {'packed' if source.arm_packed else 'from separate maps'}"]
@@ -224,19 +239,20 @@ def _describe(texture_set: material_io.TextureSet) -> list[str]:
 
 
 def _compress(args: argparse.Namespace) -> int:
-    from bcf.core import baselines as codecs
-    from bcf.core import compress, report
+    from bcf.core.options import parse_baselines
+    from bcf.core import pipeline as compress
+    from bcf.core.report import report_json as report
     from bcf.core.options import JobOptions, resolve_options
 
     if args.material is None and args.albedo is None:
-        raise material_io.MaterialError("give a MATERIAL_DIR or the texture files (--albedo, --normal, --arm ...)")
+        raise MaterialError("give a MATERIAL_DIR or the texture files (--albedo, --normal, --arm ...)")
     try:
-        baselines = [] if args.baselines is None else codecs.parse_baselines(args.baselines)
+        baselines = [] if args.baselines is None else parse_baselines(args.baselines)
     except ValueError as exc:
-        raise material_io.MaterialError(f"--baselines: {exc}") from None
+        raise MaterialError(f"--baselines: {exc}") from None
     output = Path(args.output)
     compress.check_output(output, args.force)
-    texture_set = material_io.load_material(Path(args.material) if args.material else None, _explicit_files(args))
+    texture_set = load_material(Path(args.material) if args.material else None, _explicit_files(args))
     for line in _describe(texture_set):
         _say(line)
     for note in texture_set.notes:
@@ -256,19 +272,22 @@ def _compress(args: argparse.Namespace) -> int:
 
 
 def _decode(args: argparse.Namespace) -> int:
-    from bcf.core import compress, export
+    from bcf.core import decode_export
+    from bcf.core import pipeline as compress
+    from bcf.core.export import artifacts as export
 
     folder = Path(args.folder)
     manifest = export.read_manifest(folder)
     mips = list(range(manifest.mips)) if args.all_mips else [args.mip]
     extension = ".exr" if args.format == "exr" else ".png"
-    compress.decode_export(folder, Path(args.output), mips, extension, args.bits,
+    decode_export(folder, Path(args.output), mips, extension, args.bits,
                            on_file=lambda path: _say(f"wrote {path}"))
     return 0
 
 
 def _info(args: argparse.Namespace) -> int:
-    from bcf.core import export, report
+    from bcf.core.export import artifacts as export
+    from bcf.core.report import report_json as report
 
     folder = Path(args.folder)
     m = export.read_manifest(folder)
@@ -294,15 +313,15 @@ def _info(args: argparse.Namespace) -> int:
 
 
 def _bench(args: argparse.Namespace) -> int:
-    from bcf.core import baselines as codecs
-    from bcf.core import bench
+    from bcf.core.options import parse_baselines
+    from bcf.jobs import bench
 
     sizes = [f.strip() for f in args.features.split(",")]
     bad = [f for f in sizes if f not in ("0.5k", "1k", "2k")]
     if bad or not sizes:
         raise bench.BenchError(f"--features: unknown size {', '.join(bad)}; use 0.5k, 1k, 2k")
     try:
-        baselines = [] if args.baselines == "none" else codecs.parse_baselines(args.baselines)
+        baselines = [] if args.baselines == "none" else parse_baselines(args.baselines)
     except ValueError as exc:
         raise bench.BenchError(f"--baselines: {exc}") from None
     if args.max_size is not None and args.max_size < 64:
@@ -324,7 +343,8 @@ def _bench(args: argparse.Namespace) -> int:
 
 
 def _check(args: argparse.Namespace) -> int:
-    from bcf.core import check, report
+    from bcf.core.report import check
+    from bcf.core.report import report_json as report
 
     if args.tolerance_db < 0:
         raise check.CheckError(f"--tolerance-db must be >= 0, got {args.tolerance_db:g}")
@@ -344,7 +364,7 @@ def _check(args: argparse.Namespace) -> int:
 
 
 def _shader(args: argparse.Namespace) -> int:
-    from bcf.core import shader
+    from bcf.engine import shader
 
     source = shader.shader_source(Path(args.folder), args.lang)
     if args.output is None:

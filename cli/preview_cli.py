@@ -12,6 +12,8 @@ import functools
 from pathlib import Path
 from typing import Callable
 
+from bcf.material_cli import cli_message
+
 COMMANDS = {
     "preview": "render a compressed material on a lit sphere (headless OpenGL) into a PNG, optionally beside "
                "the original textures",
@@ -23,7 +25,7 @@ GL_PACKAGES = ("EGL and Mesa (llvmpipe, with BC6H support) provide it; on Debian
 
 def add_commands(commands: argparse._SubParsersAction, user_error: type[Exception],
                  positive_int: Callable[[str], int], non_negative_int: Callable[[str], int]) -> None:
-    from bcf.core.preview import DEFAULT_LIGHT, MAX_SIZE, MIN_SIZE  # no torch: --help stays instant
+    from bcf.engine.preview import DEFAULT_LIGHT, MAX_SIZE, MIN_SIZE  # no torch: --help stays instant
 
     p = commands.add_parser(
         "preview", help=COMMANDS["preview"], description=COMMANDS["preview"] + ".",
@@ -46,7 +48,7 @@ def add_commands(commands: argparse._SubParsersAction, user_error: type[Exceptio
 
 
 def _preview(args: argparse.Namespace, user_error: type[Exception]) -> int:
-    from bcf.core.preview import MAX_SIZE, MIN_SIZE
+    from bcf.engine.preview import MAX_SIZE, MIN_SIZE
 
     # The cheap checks first: bad arguments fail before torch and OpenGL load.
     output: Path = args.output
@@ -59,13 +61,16 @@ def _preview(args: argparse.Namespace, user_error: type[Exception]) -> int:
     if not -90.0 <= args.light_elevation <= 90.0:
         raise user_error(f"--light-elevation must be in [-90, 90], got {args.light_elevation:g}")
 
-    from bcf.core import export, gl, material, preview
+    from bcf.core.export import artifacts as export
+    from bcf.engine import gl
+    from bcf.engine import preview
+    from bcf.core.material.roles import MaterialError
 
     try:
         images = preview.render_preview(Path(args.folder), args.source, args.size,
                                         (args.light_azimuth, args.light_elevation))
-    except (export.ExportError, material.MaterialError) as exc:
-        raise user_error(str(exc)) from None
+    except (export.ExportError, MaterialError) as exc:
+        raise user_error(cli_message(exc)) from None
     except gl.GLUnavailable as exc:
         message = str(exc)
         if "apt-get" not in message:

@@ -7,15 +7,20 @@ manifest and report record, so a result always says exactly how it was made.
 
 from __future__ import annotations
 
-from typing import Literal, Optional
+from dataclasses import dataclass
+from typing import Literal, Optional, Sequence
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-__all__ = ["PRESETS", "CompressOptions", "JobOptions", "ResolvedOptions", "TrainingSchedule", "FEATURE_SCALES",
-           "resolve_options"]
+__all__ = ["BASELINES", "FEATURE_SCALES", "PRESETS", "Address", "BaselineSpec", "CompressOptions", "Device",
+           "FeatureSize", "JobOptions", "Preset", "ResolvedOptions", "TrainingSchedule", "baseline_names",
+           "parse_baselines", "resolve_options"]
 
 Preset = Literal["fast", "default", "paper"]
+Address = Literal["wrap", "clamp"]
+Device = Literal["cpu", "cuda"]
 FeatureSize = Literal["0.5k", "1k", "2k"]
+Codec = Literal["bc1_bc5", "astc", "naive_bc6"]  # baseline codecs
 
 # T0's width as a fraction of the material's width; named after the paper's Table 1 for a 2K material.
 FEATURE_SCALES: dict[str, float] = {"0.5k": 0.25, "1k": 0.5, "2k": 1.0}
@@ -76,9 +81,9 @@ class CompressOptions(BaseModel):
 
     preset: Preset = Field("default", description="training schedule: fast (tests, demo), default, paper")
     features: FeatureSize = Field("1k", description="T0 at W/4 (0.5k), W/2 (1k) or W (2k)")
-    address: Literal["wrap", "clamp"] = Field("wrap", description="texture addressing: wrap for tiling "
+    address: Address = Field("wrap", description="texture addressing: wrap for tiling "
                                               "materials, clamp for UV atlases")
-    device: Literal["cpu", "cuda"] = "cpu"
+    device: Device = "cpu"
     seed: int = Field(0, ge=0)
     phase1_iterations: Optional[int] = Field(None, ge=0)
     phase2_iterations: Optional[int] = Field(None, ge=0)
@@ -98,15 +103,13 @@ class JobOptions(CompressOptions):
     the baseline codecs to score beside ours, and the normal map convention when file names do not say it."""
 
     baselines: list[str] = Field(default_factory=list, description="baseline codecs to score (names from "
-                                 "bcf.core.baselines.BASELINES, or the groups all, bc, astc, naive)")
+                                 "BASELINES, or the groups all, bc, astc, naive)")
     normal_convention: Optional[Literal["opengl", "directx"]] = Field(
         None, description="green channel convention of the normal map (default: from its file name, else opengl)")
 
     @field_validator("baselines", mode="before")
     @classmethod
     def _known_baselines(cls, value: object) -> object:
-        from bcf.core.baselines import parse_baselines  # imports report, which imports this module
-
         if isinstance(value, str):
             value = [value]
         if isinstance(value, list) and all(isinstance(v, str) for v in value):
@@ -123,8 +126,8 @@ class ResolvedOptions(TrainingSchedule):
 
     preset: Preset
     features: FeatureSize
-    address: Literal["wrap", "clamp"]
-    device: Literal["cpu", "cuda"]
+    address: Address
+    device: Device
     seed: int
 
 
@@ -133,3 +136,49 @@ def resolve_options(options: CompressOptions) -> ResolvedOptions:
     values = PRESETS[options.preset].model_dump()
     values.update({k: v for k, v in options.model_dump().items() if v is not None})
     return ResolvedOptions(**values)
+
+
+# ------------------------------------------------------------------------------------------- baselines
+# Conventional codecs a compression can be scored against (`bcf.core.report.baselines` runs them).
+
+
+@dataclass(frozen=True)
+class BaselineSpec:
+    name: str
+    codec: Codec
+    half: bool = False  # top mip at half the material's resolution
+    block: int = 4  # block side in texels (ASTC n x n)
+
+
+def _specs() -> dict[str, BaselineSpec]:
+    specs = [BaselineSpec(f"bc1_bc5_{r}", "bc1_bc5", r == "half") for r in ("full", "half")]
+    specs += [BaselineSpec(f"astc_{n}x{n}_{r}", "astc", r == "half", n) for n in (12, 8, 6) for r in ("full", "half")]
+    specs.append(BaselineSpec("naive_bc6", "naive_bc6"))
+    return {s.name: s for s in specs}
+
+
+BASELINES: dict[str, BaselineSpec] = _specs()
+
+
+def baseline_names(codecs: Sequence[Codec] = ("bc1_bc5", "astc", "naive_bc6")) -> list[str]:
+    """Names of the baselines of the given codecs, in BASELINES order."""
+    return [name for name, spec in BASELINES.items() if spec.codec in codecs]
+
+
+BASELINE_GROUPS: dict[str, Sequence[Codec]] = {"all": ("bc1_bc5", "astc", "naive_bc6"), "bc": ("bc1_bc5",),
+                                                "astc": ("astc",), "naive": ("naive_bc6",)}
+
+
+def parse_baselines(text: str) -> list[str]:
+    """'all', or a comma-separated list of groups (bc, astc, naive) and names (astc_12x12_full, ...) -> the
+    names, in BASELINES order. Raises ValueError naming what is unknown."""
+    wanted: set[str] = set()
+    for item in (part.strip() for part in text.split(",")):
+        if item in BASELINE_GROUPS:
+            wanted.update(baseline_names(BASELINE_GROUPS[item]))
+        elif item in BASELINES:
+            wanted.add(item)
+        else:
+            raise ValueError(f"unknown baseline {item!r}: use all, bc, astc, naive or names from "
+                             f"{', '.join(BASELINES)}")
+    return [name for name in BASELINES if name in wanted]

@@ -1,5 +1,7 @@
-"""bcf.jobs: the job queue and its workers (Huey; SQLite embedded or Redis in farm mode).
+"""bcf.jobs: running many compressions: the job queue and its workers, the local batch runner, the benchmark.
 
-`settings.Settings` (BCF_* environment), `records.Job` (the job object), `store` (job records), `queue.JobQueue`
-(submit, cancel, recover), `worker.Worker` (`bcf worker`). docs/SERVICE.md describes the whole.
+`settings` (BCF_* environment), `records` (the stored job record), `store` (SQLite or Redis), `queue` (submit,
+cancel, recover), `submission` (a checked job from uploaded files), `worker` (`bcf worker`), `batch` (a whole
+asset tree, resumable, in local processes), `bench` (a materials folder at several sizes with baselines).
+Knows no HTTP; calls `bcf.core`'s public API only. docs/SERVICE.md describes the queue.
 """

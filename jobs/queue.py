@@ -15,6 +15,7 @@ from typing import Callable, Optional
 
 from huey import Huey, RedisHuey, SqliteHuey
 
+from bcf.core import staging_leftovers
 from bcf.jobs.records import Job, utc_now
 from bcf.jobs.settings import Settings
 from bcf.jobs.store import JobStore, open_store
@@ -123,6 +124,6 @@ class JobQueue:
         return self.settings.inputs_dir / job_id
 
     def remove_partial_outputs(self, job_id: str) -> None:
-        """Staging folders a killed worker left for this job (compress_material's `.<id>.partial-*`)."""
-        for leftover in self.settings.artifacts_dir.glob(f".{job_id}.partial-*"):
+        """Staging folders a killed worker left for this job's artifacts."""
+        for leftover in staging_leftovers(self.artifacts_path(job_id)):
             shutil.rmtree(leftover, ignore_errors=True)

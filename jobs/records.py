@@ -5,11 +5,11 @@ from __future__ import annotations
 import datetime
 import hashlib
 import json
-from typing import Literal, Optional, get_args
+from typing import Literal, Optional, Sequence, get_args
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from bcf.core.options import JobOptions, resolve_options
+from bcf.core import JobOptions, ResultIdentity
 
 __all__ = ["FINAL_STATES", "JOB_STATES", "InputFile", "Job", "JobProgress", "JobResult", "JobState", "input_key",
            "utc_now"]
@@ -85,10 +85,9 @@ class Job(_Model):
         return (self.finished_at - self.started_at).total_seconds()
 
 
-def input_key(file_hashes: dict[str, str], normal_convention: str, options: JobOptions) -> str:
-    """Content hash that identifies a job: the inputs' bytes by role, the normal convention the material was
-    loaded with and the resolved options. The device is left out (the worker chooses it) and so is the name."""
-    resolved = resolve_options(options.compress_options()).model_dump(exclude={"device"})
-    identity = {"files": dict(sorted(file_hashes.items())), "normal_convention": normal_convention,
-                "options": resolved, "baselines": sorted(options.baselines)}
-    return hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest()
+def input_key(identity: ResultIdentity, baselines: Sequence[str]) -> str:
+    """Content hash that identifies a job: what decides its result (`bcf.core.result_identity`: the inputs' bytes
+    by role, the normal convention and size they were loaded with, the resolved options without the device)
+    and the baselines asked for. The name is left out."""
+    keyed = {"result": identity.key(), "baselines": sorted(baselines)}
+    return hashlib.sha256(json.dumps(keyed, sort_keys=True).encode()).hexdigest()

@@ -1,4 +1,4 @@
-"""`bcf worker`: a Huey consumer that runs compression jobs with `bcf.core.compress.compress_material`.
+"""`bcf worker`: a Huey consumer that runs compression jobs with `bcf.core.pipeline.compress_material`.
 
 A job runs in a consumer thread; a monitor thread beside it writes progress and a heartbeat to the job
 record every `heartbeat_s` and notices cancel requests. A cancel request or a shutdown stops training at the
@@ -17,9 +17,8 @@ import uuid
 from pathlib import Path
 from typing import Any, Optional
 
-from bcf.core import compress, material
-from bcf.core.options import resolve_options
-from bcf.core.training import TrainingProgress, TrainingStopped
+from bcf.core import (MaterialFiles, TextureSet, TrainingProgress, TrainingStopped, compress_material, load_texture_set,
+                      resolve_options)
 from bcf.jobs.queue import JobQueue
 from bcf.jobs.records import Job, JobProgress, JobResult, utc_now
 from bcf.jobs.settings import Settings
@@ -31,11 +30,11 @@ log = logging.getLogger("bcf.worker")
 SHUTDOWN_GRACE_S = 10.0
 
 
-def load_job_material(job: Job, inputs: Path) -> material.TextureSet:
+def load_job_material(job: Job, inputs: Path) -> TextureSet:
     """The job's texture set from its stored inputs (<role>.<ext> in `inputs`)."""
-    files = material.MaterialFiles(**{f.role: inputs / f.stored_as for f in job.inputs},
+    files = MaterialFiles(**{f.role: inputs / f.stored_as for f in job.inputs},
                                    normal_convention=job.options.normal_convention)
-    return material.load_texture_set(files, name=job.name)
+    return load_texture_set(files, name=job.name)
 
 
 def job_result(folder: Path, report) -> JobResult:
@@ -167,7 +166,7 @@ class Worker:
                       resolved.phase2_iterations) as monitor:
             try:
                 texture_set = load_job_material(job, self.queue.inputs_path(job.id))
-                report = compress.compress_material(
+                report = compress_material(
                     texture_set, resolved, output, progress=monitor.on_progress,
                     should_stop=lambda: monitor.cancel.is_set() or self.stopping(), overwrite=True,
                     baselines=job.options.baselines, note=monitor.on_note)

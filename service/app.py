@@ -22,8 +22,7 @@ from pydantic import BaseModel, ValidationError
 from starlette.background import BackgroundTask
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from bcf import __version__
-from bcf.core.options import JobOptions
+from bcf.core import JobOptions, __version__
 from bcf.jobs.queue import JobQueue
 from bcf.jobs.records import FINAL_STATES, Job, JobState
 from bcf.jobs.settings import Settings

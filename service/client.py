@@ -1,7 +1,7 @@
 """A small client of the bcf HTTP API, and `run_remote`: `bcf batch --submit` with the service doing the work.
 
 Materials are submitted at once (the service queues them and its workers decide the parallelism), then polled;
-each finished job's artifact zip is downloaded, checked (`export.load_export` verifies every file against the
+each finished job's artifact zip is downloaded, checked (`load_export` verifies every file against the
 manifest) and put in place atomically, like a local `bcf compress` folder.
 """
 
@@ -17,10 +17,8 @@ from typing import Any, Optional, Sequence
 
 import httpx
 
-from bcf.core import compress, export
-from bcf.core.batch import BatchItem, BatchMaterial, EventCallback, MaterialEvent, check_replaceable
-from bcf.core.options import JobOptions
-from bcf.core.training import TrainingProgress
+from bcf.core import ExportError, JobOptions, OutputExistsError, TrainingProgress, load_export, replace_folder
+from bcf.jobs.batch import BatchItem, BatchMaterial, EventCallback, MaterialEvent, check_replaceable
 
 __all__ = ["JobRejected", "ServiceClient", "ServiceUnavailable", "run_remote"]
 
@@ -108,8 +106,8 @@ def _install(client: ServiceClient, job_id: str, output: Path) -> None:
         with zipfile.ZipFile(archive) as z:
             z.extractall(staged)
         archive.unlink()
-        export.load_export(staged)  # every file against the manifest's SHA-256
-        compress.replace_folder(staged, output)
+        load_export(staged)  # every file against the manifest's SHA-256
+        replace_folder(staged, output)
     except BaseException:
         shutil.rmtree(staged, ignore_errors=True)
         staged.with_suffix(".zip").unlink(missing_ok=True)
@@ -139,7 +137,7 @@ def run_remote(todo: Sequence[BatchMaterial], options: JobOptions, client: Servi
                 raise JobRejected("; ".join(entry.found.problems))
             check_replaceable(entry.output)
             job = client.submit(entry, options)
-        except (JobRejected, compress.OutputExistsError, OSError) as exc:
+        except (JobRejected, OutputExistsError, OSError) as exc:
             items[index] = entry.item("failed", error=str(exc))
             emit(MaterialEvent(name, "finished", item=items[index]))
             continue
@@ -161,7 +159,7 @@ def run_remote(todo: Sequence[BatchMaterial], options: JobOptions, client: Servi
                     result = job["result"]
                     item = entry.item("compressed", psnr=result["psnr"], ssim=result["ssim"],
                                       size_bytes=result["size_bytes"], seconds=seconds, job_id=job_id)
-                except (export.ExportError, zipfile.BadZipFile, OSError) as exc:
+                except (ExportError, zipfile.BadZipFile, OSError) as exc:
                     item = entry.item("failed", error=f"result of job {job_id} unusable: {exc}", seconds=seconds,
                                       job_id=job_id)
             else:

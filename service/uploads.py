@@ -19,8 +19,8 @@ from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import BinaryIO, Optional
 
-from bcf.core import material
-from bcf.core.options import JobOptions
+from bcf.core import (IMAGE_EXTENSIONS, JobOptions, MaterialError, MaterialFiles, load_texture_set,
+                      normal_convention_from_name, resolve_material, result_identity)
 from bcf.jobs.queue import JobQueue
 from bcf.jobs.records import InputFile, Job, input_key
 
@@ -128,7 +128,7 @@ def _unpack_zip(upload: UploadedFile, folder: Path, max_entries: int, max_total:
                                  f"of {max_total / 2**20:.0f} MiB")
         paths = [(info, _entry_name(info)) for info in entries]
         files = [(info, path) for info, path in paths if path is not None]
-        images = [(info, path) for info, path in files if path.suffix.lower() in material.IMAGE_EXTENSIONS]
+        images = [(info, path) for info, path in files if path.suffix.lower() in IMAGE_EXTENSIONS]
         if not images:
             raise BadUpload(422, f"material zip: no image files ({ACCEPTED_FORMATS}) found")
         left = max_total
@@ -156,7 +156,7 @@ def _unpack_zip(upload: UploadedFile, folder: Path, max_entries: int, max_total:
 def _client_message(message: str, names: dict[str, str]) -> str:
     """A MaterialError's text with staging paths replaced by what the client sent, and CLI options by fields."""
     for path, shown in sorted(names.items(), key=lambda item: -len(item[0])):
-        message = message.replace(path, shown)
+        message = message.replace(path, shown).replace(f" {Path(path).name} ", f" {shown} ")
     for option, field in (("--normal-convention", 'options {"normal_convention": ...}'),
                           ("--albedo/--normal/--arm/--roughness", "the form fields albedo, normal, arm, roughness"),
                           ("--arm", "arm"), ("--ao", "ao"), ("--roughness", "roughness"),
@@ -188,9 +188,9 @@ def submit_upload(queue: JobQueue, uploads: list[UploadedFile], options: JobOpti
             name = _unpack_zip(by_field["material"], unpacked, settings.max_zip_entries,
                                int(settings.max_unzipped_mb * 2**20))
             try:
-                found = material.resolve_material(unpacked, material.MaterialFiles(
+                found = resolve_material(unpacked, MaterialFiles(
                     normal_convention=options.normal_convention))
-            except material.MaterialError as exc:
+            except MaterialError as exc:
                 raise BadUpload(422, _client_message(str(exc), names)) from None
             originals: dict[str, str] = {}
             files: dict[str, Path] = {}
@@ -208,12 +208,12 @@ def submit_upload(queue: JobQueue, uploads: list[UploadedFile], options: JobOpti
                 names[str(target)] = f"{field} ({shown})"
             albedo_name = by_field["albedo"].filename if "albedo" in by_field else None
             name = _safe_name(Path(albedo_name).stem if albedo_name else None, "material")
-            convention = options.normal_convention or (material.normal_convention_from_name(
+            convention = options.normal_convention or (normal_convention_from_name(
                 by_field["normal"].filename or "") if "normal" in by_field else None)
         try:
-            texture_set = material.load_texture_set(material.MaterialFiles(**files, normal_convention=convention),
+            texture_set = load_texture_set(MaterialFiles(**files, normal_convention=convention),
                                                     name=name)
-        except material.MaterialError as exc:
+        except MaterialError as exc:
             raise BadUpload(422, _client_message(str(exc), names)) from None
         source = texture_set.source
         hashes = {f.role: f.sha256 for f in source.files}
@@ -221,7 +221,8 @@ def submit_upload(queue: JobQueue, uploads: list[UploadedFile], options: JobOpti
         job = Job(id=uuid.uuid4().hex[:16], name=name, options=resolved_options,
                   inputs=[InputFile(role=role, name=originals[role], stored_as=path.name, sha256=hashes[role],
                                     bytes=path.stat().st_size) for role, path in files.items()],
-                  input_key=input_key(hashes, source.normal_convention, resolved_options),
+                  input_key=input_key(result_identity(hashes, source.normal_convention, (source.width, source.height),
+                                                      resolved_options.compress_options()), resolved_options.baselines),
                   notes=[_client_message(note, names) for note in texture_set.notes])
         # Inputs are in place before the job is queued: a worker may start it at once.
         final = queue.inputs_path(job.id)

@@ -17,7 +17,7 @@ from typing import Any, Union
 
 import numpy as np
 
-from bcf.core.containers import BC6HTexture
+from bcf.core.codec.containers import BC6HTexture
 
 StrPath = Union[str, PathLike]
 
@@ -84,7 +84,7 @@ class MesaBC6HDecoder:
     the decoding, and the texels read back, are Mesa's."""
 
     def __init__(self) -> None:
-        from bcf.core.gl import GLUnavailable, HeadlessGL
+        from bcf.engine.gl import GLUnavailable, HeadlessGL
 
         try:
             self._gl: Any = HeadlessGL()

@@ -10,9 +10,10 @@ from pathlib import Path
 import OpenImageIO as oiio
 import pytest
 
-from bcf.core.assets import AssetScan, FoundMaterial, scan_assets
-from bcf.core.material import (IMAGE_EXTENSIONS, MaterialError, discover_material, load_texture_set,
-                               normal_convention_from_name)
+from bcf.core.material.assets import AssetScan, FoundMaterial, scan_assets
+from bcf.core.material.roles import IMAGE_EXTENSIONS, MaterialError
+from bcf.core.material.naming import discover_material, normal_convention_from_name
+from bcf.core.material.texture_set import load_texture_set
 
 DATA = Path(__file__).resolve().parent / "data"
 NAMES = json.loads((DATA / "material_names.json").read_text())["materials"]

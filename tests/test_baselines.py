@@ -15,15 +15,19 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 import texture2ddecoder
-from bcf.core import baselines, compress, images
-from bcf.core.material import TEXTURES, TextureSet, load_material
+from bcf.core import options
+from bcf.core.report import baselines
+from bcf.core import pipeline as compress
+from bcf.core.material import images
+from bcf.core.material.roles import TEXTURES
+from bcf.core.material.texture_set import TextureSet, load_material
 from bcf.core.options import CompressOptions
-from bcf.core.report import read_report
-from bcf.core.sampling import ReferenceMaterial
+from bcf.core.report.report_json import read_report
+from bcf.core.fit.sampling import ReferenceMaterial
 from bcf_command import run_bcf
 
 CHAINMAIL = Path(__file__).resolve().parent / "data" / "chainmail_128"
-CODEC_BASELINES = baselines.baseline_names(("bc1_bc5", "astc"))
+CODEC_BASELINES = options.baseline_names(("bc1_bc5", "astc"))
 ASTC_MAGIC = bytes([0x13, 0xAB, 0xA1, 0x5C])
 
 # PSNR over all mips measured on chainmail_128 (BC: quicktex level 18; ASTC: thorough), with a margin of a few dB:
@@ -49,7 +53,7 @@ def encoded(chainmail: TextureSet, reference: ReferenceMaterial, tmp_path_factor
     root = tmp_path_factory.mktemp("baselines")
     out = {}
     for name in CODEC_BASELINES:
-        decoded = baselines.encode_baseline(baselines.BASELINES[name], chainmail.channels)
+        decoded = baselines.encode_baseline(options.BASELINES[name], chainmail.channels)
         baselines.write_baseline_files(decoded, root / name)
         scored, decoder = baselines.run_codec_baseline(name, chainmail.channels, reference)
         out[name] = (scored, decoder, decoded, root / name)
@@ -58,7 +62,7 @@ def encoded(chainmail: TextureSet, reference: ReferenceMaterial, tmp_path_factor
 
 def _expected_bytes(name: str, width: int, height: int) -> int:
     """Blocks of the full chain to 1x1: BC 8 + 16 + 8 bytes per 4x4 block, ASTC 3 x 16 bytes per n x n block."""
-    spec = baselines.BASELINES[name]
+    spec = options.BASELINES[name]
     if spec.half:
         width, height = width // 2, height // 2
     total = 0
@@ -107,7 +111,7 @@ def test_astc_files_decode_the_same_in_an_independent_decoder(name: str, encoded
     """Each .astc file: Arm's header (magic, block size, 24-bit sizes), blocks that texture2ddecoder decodes to
     astcenc's decode within 1/255 (unorm8 vs fp16 rounding)."""
     _, _, decoded, folder = encoded[name]
-    n = baselines.BASELINES[name].block
+    n = options.BASELINES[name].block
     for texture in decoded.textures:
         for level, ours in enumerate(decoded.mips):
             data = (folder / f"{texture.name}_mip{level}.astc").read_bytes()
@@ -156,7 +160,7 @@ def test_scores_equal_a_direct_comparison_of_the_decoded_mips(name: str, encoded
     half-resolution one its mip m - 1, and at mip 0 its top mip magnified 2x bilinearly: the per-mip MSE equals
     numpy's on those images."""
     scored, _, decoded, _ = encoded[name]
-    half = baselines.BASELINES[name].half
+    half = options.BASELINES[name].half
     for entry in scored.per_mip:
         target = reference.mip(entry.mip).permute(1, 2, 0).numpy()
         if half:
@@ -169,16 +173,16 @@ def test_scores_equal_a_direct_comparison_of_the_decoded_mips(name: str, encoded
 
 
 def test_parse_baselines() -> None:
-    assert baselines.parse_baselines("all") == list(baselines.BASELINES)
-    assert baselines.parse_baselines("naive, bc") == ["bc1_bc5_full", "bc1_bc5_half", "naive_bc6"]
-    assert baselines.parse_baselines("astc_6x6_half,bc1_bc5_full") == ["bc1_bc5_full", "astc_6x6_half"]
+    assert options.parse_baselines("all") == list(options.BASELINES)
+    assert options.parse_baselines("naive, bc") == ["bc1_bc5_full", "bc1_bc5_half", "naive_bc6"]
+    assert options.parse_baselines("astc_6x6_half,bc1_bc5_full") == ["bc1_bc5_full", "astc_6x6_half"]
     with pytest.raises(ValueError, match="unknown baseline 'etc2'"):
-        baselines.parse_baselines("bc,etc2")
+        options.parse_baselines("bc,etc2")
 
 
 def test_encode_baseline_refuses_naive_bc6(chainmail: TextureSet) -> None:
     with pytest.raises(ValueError, match="naive_bc6 comes from training"):
-        baselines.encode_baseline(baselines.BASELINES["naive_bc6"], chainmail.channels)
+        baselines.encode_baseline(options.BASELINES["naive_bc6"], chainmail.channels)
 
 
 # ------------------------------------------------------------------------------------------ end to end

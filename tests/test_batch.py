@@ -15,9 +15,10 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
-from bcf.core import export
-from bcf.core.assets import FoundMaterial
-from bcf.core.batch import _output_names
+from bcf.core import load_export
+from bcf.core.export import artifacts as export
+from bcf.core.material.assets import FoundMaterial
+from bcf.jobs.batch import _output_names
 from bcf_command import BCF, ONE_THREAD_ENV, run_bcf
 from service_harness import CHAINMAIL, CHAINMAIL_ROLES, BcfEnvironment
 
@@ -111,7 +112,7 @@ def test_batch_compresses_all_then_skips_then_redoes_only_what_changed(library: 
     assert first.returncode == 0, first.stdout + first.stderr
     assert set(statuses(out).values()) == {"compressed"} and len(statuses(out)) == 21
     for name in NAMES:  # one bcf compress folder per material, mirroring the input tree
-        assert export.load_export(out / name).manifest.material.width == SIZE
+        assert load_export(out / name).manifest.material.width == SIZE
     items = summary(out)["items"]
     assert all(i["psnr"] > 10 and i["size_bytes"] > 0 for i in items)
     assert "21 materials: 21 compressed" in first.stdout
@@ -190,7 +191,7 @@ def test_submit_sends_materials_to_the_service_and_downloads_the_results(tmp_pat
         assert {i["material"]: i["status"] for i in items} == {name: "compressed" for name in subset}
         assert all(i["job_id"] for i in items) and summary(out)["mode"] == "submit"
         for name in subset:
-            loaded = export.load_export(out / name)
+            loaded = load_export(out / name)
             assert loaded.manifest.material.normal_convention == ("directx" if name == "Metal009" else "opengl")
         jobs = server.client.get("/v1/jobs").json()
         assert jobs["total"] == 3 and {j["state"] for j in jobs["jobs"]} == {"succeeded"}
@@ -228,8 +229,8 @@ def test_the_terminal_display_redraws_overall_and_per_material_lines() -> None:
     import io
 
     from bcf.batch_cli import BatchProgress
-    from bcf.core.batch import BatchItem, MaterialEvent
-    from bcf.core.training import TrainingProgress
+    from bcf.jobs.batch import BatchItem, MaterialEvent
+    from bcf.core.fit.training import TrainingProgress
 
     class Terminal(io.StringIO):
         def isatty(self) -> bool:

@@ -10,10 +10,12 @@ import numpy as np
 import pytest
 import torch
 
-from bcf.core import bc6h
-from bcf.core.containers import BC6HTexture, full_mip_count, mip_size, read_dds, write_dds
-from bcf.core.bc6h_tools import psnr
-from bcf.core.images import mip_chain, read_rgb
+from bcf.core.codec import bc6h
+from bcf.core.codec import partition as bc6h_partition
+from bcf.core.fit import block_decode
+from bcf.core.codec.containers import BC6HTexture, full_mip_count, mip_size, read_dds, write_dds
+from bcf.core.codec.textures import psnr
+from bcf.core.material.images import mip_chain, read_rgb
 from reference_decoders import MesaBC6HDecoder, decode_with_mesa, decode_with_oiio
 
 NEGATIVE_ZERO = 0x8000
@@ -178,7 +180,7 @@ def test_differentiable_decode_forward_is_bit_exact(regions: int, signed: bool) 
     rng = np.random.default_rng(30 + 2 * regions + signed)
     n = 50_000
     spec = bc6h.MODE_10 if regions == 2 else bc6h.MODE_11
-    low, high = bc6h._endpoint_range(spec.endpoint_bits, signed)
+    low, high = bc6h.endpoint_range(spec.endpoint_bits, signed)
     endpoints = torch.tensor(rng.uniform(low - 2, high + 2, (n, regions, 2, 3)), dtype=torch.float32)
     # Exact integers and ties (x.5) included: the rounding rule must be the exporter's.
     ties = torch.tensor(rng.random((n // 4, regions, 2, 3)) < 0.5, dtype=torch.float32)
@@ -186,10 +188,10 @@ def test_differentiable_decode_forward_is_bit_exact(regions: int, signed: bool) 
     weights = torch.tensor(rng.uniform(-0.1, 1.1, (n, 16)), dtype=torch.float32)
     partition = torch.tensor(rng.integers(0, 32, n)) if regions == 2 else None
 
-    values = bc6h.decode_blocks_differentiable(endpoints, weights, partition, signed)
+    values = block_decode.decode_blocks_differentiable(endpoints, weights, partition, signed)
 
-    stored = bc6h.quantize_endpoints(endpoints, spec.endpoint_bits, signed).numpy().astype(np.int64)
-    index = bc6h.quantize_weights(weights, spec.index_bits).numpy().astype(np.int64)
+    stored = block_decode.quantize_endpoints(endpoints, spec.endpoint_bits, signed).numpy().astype(np.int64)
+    index = block_decode.quantize_weights(weights, spec.index_bits).numpy().astype(np.int64)
     if regions == 2:
         blocks = bc6h.encode_mode10(stored, index, partition.numpy(), signed)
     else:
@@ -207,7 +209,7 @@ def test_differentiable_decode_gradients_fit_a_target(signed: bool) -> None:
     n = 256
     true_endpoints = rng.integers(-25 if signed else 5, 26 if signed else 58, (n, 2, 2, 3))
     partition = torch.tensor(rng.integers(0, 32, n))
-    target = bc6h.decode_blocks_differentiable(torch.tensor(true_endpoints, dtype=torch.float32),
+    target = block_decode.decode_blocks_differentiable(torch.tensor(true_endpoints, dtype=torch.float32),
                                                torch.tensor(rng.random((n, 16)), dtype=torch.float32),
                                                partition, signed)
     endpoints = torch.tensor(true_endpoints + rng.normal(0, 6, true_endpoints.shape), dtype=torch.float32,
@@ -216,7 +218,7 @@ def test_differentiable_decode_gradients_fit_a_target(signed: bool) -> None:
     optimiser = torch.optim.Adam([endpoints, weights], lr=0.05)
     losses = []
     for _ in range(300):
-        loss = torch.mean((bc6h.decode_blocks_differentiable(endpoints, weights, partition, signed) - target) ** 2)
+        loss = torch.mean((block_decode.decode_blocks_differentiable(endpoints, weights, partition, signed) - target) ** 2)
         optimiser.zero_grad()
         loss.backward()
         assert torch.isfinite(endpoints.grad).all() and torch.isfinite(weights.grad).all()
@@ -227,7 +229,7 @@ def test_differentiable_decode_gradients_fit_a_target(signed: bool) -> None:
 
 def test_half_bits_to_value_is_eq9_and_exact() -> None:
     bits = np.arange(0, 0x7C00, dtype=np.uint16)
-    values = bc6h.half_bits_to_value(torch.tensor(bits, dtype=torch.float32)).numpy()
+    values = block_decode.half_bits_to_value(torch.tensor(bits, dtype=torch.float32)).numpy()
     assert np.array_equal(values, bits.view(np.float16).astype(np.float32))
     # value_to_half_bits inverts it at every finite half.
     assert np.array_equal(bc6h.value_to_half_bits(values, signed=False), bits.astype(np.float64))
@@ -247,9 +249,9 @@ def test_partition_search_recovers_a_planted_partition() -> None:
     base = rng.uniform(8_000, 14_000, (n, 2, 3))
     direction = rng.uniform(-1_500, 1_500, (n, 2, 3))
     coords = base[rows, subset] + rng.random((n, 16, 1)) * direction[rows, subset]
-    texels = bc6h.half_bits_to_value(torch.tensor(coords, dtype=torch.float64)).numpy()
+    texels = block_decode.half_bits_to_value(torch.tensor(coords, dtype=torch.float64)).numpy()
 
-    fit = bc6h.fit_blocks(texels, regions=2, signed=False)
+    fit = bc6h_partition.fit_blocks(texels, regions=2, signed=False)
     assert np.mean(fit.partition == partition) > 0.99
     assert np.all(fit.error[fit.partition == partition] < 1e-3)
 
@@ -257,15 +259,15 @@ def test_partition_search_recovers_a_planted_partition() -> None:
 def test_partition_search_picks_the_lowest_residual_of_all_32() -> None:
     rng = np.random.default_rng(51)
     texels = rng.random((300, 16, 3))
-    fit = bc6h.fit_blocks(texels, regions=2, signed=False)
+    fit = bc6h_partition.fit_blocks(texels, regions=2, signed=False)
     x = bc6h.value_to_half_bits(texels, False)
     x = x - x.mean(1, keepdims=True)
     every = []
     for p in range(32):  # brute force over partitions (32 iterations, blocks stay vectorised)
         subset = np.broadcast_to(bc6h.PARTITION_SUBSETS[p], (300, 16))
         subset = np.ascontiguousarray(subset)
-        ends, weights = bc6h._fit_lines(x, subset, 2)
-        every.append(((bc6h.points_on_segments(ends, weights, subset) - x) ** 2).sum((1, 2)))
+        ends, weights = bc6h_partition._fit_lines(x, subset, 2)
+        every.append(((bc6h_partition.points_on_segments(ends, weights, subset) - x) ** 2).sum((1, 2)))
     best = np.min(np.stack(every, 1), axis=1)
     assert np.allclose(fit.error, best, rtol=1e-6, atol=1e-6)
 
@@ -275,7 +277,7 @@ def test_encode_image_quality_on_a_real_texture(regions: int, floor_db: float) -
     """The bundled real albedo (256x256): mode 11 should be near-transparent, mode 10 (6-bit endpoints,
     the model's format) clearly worse but usable. Floors are a few dB under what was measured (35.61 and 41.77 dB)."""
     image = read_rgb(SAMPLE_ALBEDO)
-    blocks = bc6h.encode_image(image, regions=regions)
+    blocks = bc6h_partition.encode_image(image, regions=regions)
     decoded = bc6h.decode_image(blocks, 256, 256, signed=False)
     assert psnr(image, decoded) > floor_db
 
@@ -289,7 +291,7 @@ def test_dds_mip_chain_of_a_real_1024x512_texture(tmp_path: Path, mesa: MesaBC6H
     assert image.shape == (512, 1024, 3)
     chain = mip_chain(image)
     assert len(chain) == full_mip_count(1024, 512)
-    levels = [bc6h.encode_image(level_image, regions=2) for level_image in chain]
+    levels = [bc6h_partition.encode_image(level_image, regions=2) for level_image in chain]
     texture = BC6HTexture(1024, 512, False, tuple(levels))
     path = tmp_path / "bricks.dds"
     write_dds(path, texture)

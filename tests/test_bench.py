@@ -13,9 +13,10 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
-from bcf.core import bench, material
-from bcf.core.metrics import psnr_from_mse
-from bcf.core.report import read_report
+from bcf.core.material.texture_set import load_material
+from bcf.jobs import bench
+from bcf.core.psnr import psnr_from_mse
+from bcf.core.report.report_json import read_report
 from bcf_command import run_bcf
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -84,7 +85,7 @@ def test_second_run_keeps_finished_materials(materials: Path, benched: tuple[Pat
 def test_other_size_or_options_are_not_kept(materials: Path, benched: tuple[Path, str]) -> None:
     """Resuming keeps a folder only for the same inputs at the same size, the same options and the baselines."""
     out, _ = benched
-    texture_set = material.load_material(materials / "chainmail")
+    texture_set = load_material(materials / "chainmail")
     options = bench.CompressOptions(preset="fast", features="1k")
     same = bench.downscale(texture_set, 64).source
     assert bench._kept_report(out / "chainmail" / "1k", options, same, ["naive_bc6"]) is not None
@@ -109,7 +110,7 @@ def test_index_json_names_roles_and_layout(tmp_path: Path) -> None:
 
 
 def test_downscale_is_the_box_filtered_mip(tmp_path: Path) -> None:
-    texture_set = material.load_material(CHAINMAIL)
+    texture_set = load_material(CHAINMAIL)
     small = bench.downscale(texture_set, 32)
     assert (small.width, small.height) == (32, 32) and (small.source.width, small.source.height) == (32, 32)
     expected = texture_set.channels.reshape(32, 4, 32, 4, 8).mean(axis=(1, 3))

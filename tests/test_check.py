@@ -10,8 +10,10 @@ import numpy as np
 import pytest
 import torch
 
-from bcf.core import compress, images
-from bcf.core.material import load_material
+from bcf.core import REPORT_FILE
+from bcf.core import pipeline as compress
+from bcf.core.material import images
+from bcf.core.material.texture_set import load_material
 from bcf.core.options import CompressOptions
 from bcf_command import run_bcf
 
@@ -38,7 +40,7 @@ def export_folder(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
 
 
 def edited_baseline(folder: Path, target: Path, edit: Callable[[dict[str, Any]], None]) -> Path:
-    data = json.loads((folder / compress.REPORT_FILE).read_text())
+    data = json.loads((folder / REPORT_FILE).read_text())
     edit(data)
     target.write_text(json.dumps(data))
     return target
@@ -105,7 +107,8 @@ def test_incomparable_baselines_are_errors(case: str, export_folder: Path, tmp_p
 
 
 def test_check_reads_exactly_the_scores_in_the_report(export_folder: Path, tmp_path: Path) -> None:
-    from bcf.core import check, report as report_io
+    from bcf.core.report import check
+    from bcf.core.report import report_json as report_io
 
     report = report_io.read_report(export_folder)
     rows = check.compare_reports(report, report, 0.25)

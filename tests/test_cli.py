@@ -14,9 +14,10 @@ import OpenImageIO as oiio
 import pytest
 
 import bcf
-from bcf.core import bc6h, containers
-from bcf.core.bc6h_tools import mode_histogram
-from bcf.core.images import mip_chain, read_rgb
+from bcf.core.codec import bc6h
+from bcf.core.codec import containers
+from bcf.core.codec.textures import mode_histogram
+from bcf.core.material.images import mip_chain, read_rgb
 from bcf_command import run_bcf
 
 ROOT = Path(__file__).resolve().parents[1]

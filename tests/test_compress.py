@@ -24,11 +24,18 @@ import OpenImageIO as oiio
 import pytest
 import torch
 
-from bcf.core import bc6h, compress, containers, export, html_report, training
-from bcf.core.material import TextureSet, load_material
+from bcf.core import REPORT_FILE, decoded_file_names
+from bcf.core import load_export
+from bcf.core.codec import bc6h
+from bcf.core import pipeline as compress
+from bcf.core.codec import containers
+from bcf.core.export import artifacts as export
+from bcf.core.report import html as html_report
+from bcf.core.fit import training
+from bcf.core.material.texture_set import TextureSet, load_material
 from bcf.core.options import CompressOptions, resolve_options
-from bcf.core.report import Report, read_report
-from bcf.core.sampling import ReferenceMaterial, material_mip_count
+from bcf.core.report.report_json import Report, read_report
+from bcf.core.fit.sampling import ReferenceMaterial, material_mip_count
 from bcf_command import BCF, ONE_THREAD_ENV, run_bcf
 from reference_decoders import MesaBC6HDecoder, decode_with_mesa, decode_with_oiio
 
@@ -144,7 +151,7 @@ class Compressed:
         self.texture_set = texture_set
         self.folder = folder
         self.report = report
-        self.json = json.loads((folder / compress.REPORT_FILE).read_text())
+        self.json = json.loads((folder / REPORT_FILE).read_text())
         self.manifest = json.loads((folder / export.MANIFEST_FILE).read_text())
 
 
@@ -251,7 +258,7 @@ def test_report_has_every_field_and_true_sizes(which: str, request: pytest.Fixtu
     compressed: Compressed = request.getfixturevalue(which)
     folder, data, manifest = compressed.folder, compressed.json, compressed.manifest
     assert sorted(p.name for p in folder.iterdir()) == sorted(
-        [export.feature_file(i) for i in range(4)] + [export.DECODER_FILE, export.MANIFEST_FILE, compress.REPORT_FILE,
+        [export.feature_file(i) for i in range(4)] + [export.DECODER_FILE, export.MANIFEST_FILE, REPORT_FILE,
                                                     html_report.HTML_REPORT_FILE])
     for key in REQUIRED_KEYS:
         value = dig(data, key)
@@ -305,11 +312,11 @@ def test_decode_writes_every_mip_at_its_size(decoded: tuple[Path, subprocess.Com
                                              chainmail: Compressed) -> None:
     output, result = decoded
     mips = chainmail.manifest["mips"]
-    expected = {compress.decoded_file_names(m, ".png")[n] for m in range(mips) for n in ("albedo", "normal", "arm")}
+    expected = {decoded_file_names(m, ".png")[n] for m in range(mips) for n in ("albedo", "normal", "arm")}
     assert {"albedo.png", "normal.png", "arm.png", "albedo_mip1.png", f"arm_mip{mips - 1}.png"} <= expected
     assert {p.name for p in output.iterdir()} == expected
     for m in range(mips):
-        for name in compress.decoded_file_names(m, ".png").values():
+        for name in decoded_file_names(m, ".png").values():
             path = output / name
             assert image_size(path) == (128 >> m, 128 >> m), name
             spec = oiio.ImageInput.open(str(path))
@@ -325,7 +332,7 @@ def test_decoded_images_score_what_the_report_says(decoded: tuple[Path, subproce
     reference = ReferenceMaterial(chainmail.texture_set.channels, "wrap")
     for m, entry in enumerate(chainmail.json["per_mip"]):
         ref = reference.mip(m).numpy().transpose(1, 2, 0)  # (h, w, 8)
-        names = compress.decoded_file_names(m, ".png")
+        names = decoded_file_names(m, ".png")
         albedo, normal, arm = (read_oiio(output / names[n]) for n in ("albedo", "normal", "arm"))
         test = np.concatenate([albedo, normal[..., :2], arm], axis=-1)
         measured = {"albedo": psnr(ref[..., 0:3], test[..., 0:3]), "normal": psnr(ref[..., 3:5], test[..., 3:5]),
@@ -338,7 +345,7 @@ def test_decoded_normal_blue_is_rebuilt_z(decoded: tuple[Path, subprocess.Comple
                                           chainmail: Compressed) -> None:
     output, _ = decoded
     for m in range(chainmail.manifest["mips"]):
-        normal = read_oiio(output / compress.decoded_file_names(m, ".png")["normal"]).astype(np.float64)
+        normal = read_oiio(output / decoded_file_names(m, ".png")["normal"]).astype(np.float64)
         xy = normal[..., :2] * 2.0 - 1.0
         z = np.sqrt(np.clip(1.0 - (xy**2).sum(-1), 0.0, 1.0))
         # x, y were quantised to 16 bits before we read them: |dx|, |dy| <= 1 / 65535, so 1 - x^2 - y^2 moves by
@@ -357,7 +364,7 @@ def test_decode_exr_and_missing_mip(chainmail: Compressed, decoded: tuple[Path, 
     exr = tmp_path / "exr"
     result = run_bcf("decode", chainmail.folder, "-o", exr, "--format", "exr", "--mip", "1")
     assert result.returncode == 0, result.stderr
-    assert {p.name for p in exr.iterdir()} == set(compress.decoded_file_names(1, ".exr").values()) == \
+    assert {p.name for p in exr.iterdir()} == set(decoded_file_names(1, ".exr").values()) == \
         {"albedo_mip1.exr", "normal_mip1.exr", "arm_mip1.exr"}
     png_dir, _ = decoded
     for name in ("albedo", "normal", "arm"):
@@ -403,14 +410,14 @@ def test_non_square_material_with_clamp_addressing(tmp_path: Path) -> None:
     for i, texture in enumerate(manifest["feature_textures"]):
         assert texture["width"] == 2 * texture["height"], texture
         assert containers.read_dds(output / texture["file"]).width == texture["width"]
-    assert [(m["width"], m["height"]) for m in json.loads((output / compress.REPORT_FILE).read_text())["per_mip"]] \
+    assert [(m["width"], m["height"]) for m in json.loads((output / REPORT_FILE).read_text())["per_mip"]] \
         == [(128 >> m, 64 >> m) for m in range(5)]
 
     images = tmp_path / "images"
     result = run_bcf("decode", output, "-o", images, "--all-mips")
     assert result.returncode == 0, result.stderr
     for m in range(5):
-        for name in compress.decoded_file_names(m, ".png").values():
+        for name in decoded_file_names(m, ".png").values():
             assert image_size(images / name) == (128 >> m, 64 >> m), name
 
 
@@ -509,10 +516,10 @@ def test_existing_output_needs_force(sample_dir: Path, tmp_path: Path) -> None:
     result = run_bcf("compress", sample_dir, "-o", output, *CLI_TINY, "-q", "--force")
     assert result.returncode == 0, result.stderr
     assert sorted(p.name for p in output.iterdir()) == sorted(
-        [export.feature_file(i) for i in range(4)] + [export.DECODER_FILE, export.MANIFEST_FILE, compress.REPORT_FILE,
+        [export.feature_file(i) for i in range(4)] + [export.DECODER_FILE, export.MANIFEST_FILE, REPORT_FILE,
                                                     html_report.HTML_REPORT_FILE])
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no .out.old-* or .out.partial-* left
-    export.load_export(output)
+    load_export(output)
 
 
 # ------------------------------------------------------------------------------------------- 7. Ctrl-C

@@ -10,7 +10,7 @@ from typing import Callable
 import numpy as np
 import pytest
 
-from bcf.core.containers import (
+from bcf.core.codec.containers import (
     BC6HTexture,
     ContainerError,
     full_mip_count,

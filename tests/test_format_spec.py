@@ -212,7 +212,7 @@ def test_numpy_decoder_matches_bcf_at_any_point_and_scale(export: Export, decode
     bcf's reference decoder built from the same files (not used by SpecDecoder)."""
     import torch
 
-    from bcf.core.export import load_export
+    from bcf.core import load_export
 
     model = load_export(export.folder).model
     m = decoder.manifest

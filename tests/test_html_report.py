@@ -23,11 +23,16 @@ import torch
 import torch.nn.functional as F
 from matplotlib.image import imread
 
-from bcf.core import compress, export, html_report, metrics, report
-from bcf.core.html_report import HTML_REPORT_FILE, Crop, render_html_report, write_html_report
-from bcf.core.material import TextureSet, load_material
+from bcf.core import load_export
+from bcf.core import pipeline as compress
+from bcf.core.export import artifacts as export
+from bcf.core.report import html as html_report
+from bcf.core.report import metrics
+from bcf.core.report import report_json as report
+from bcf.core.report.html import HTML_REPORT_FILE, Crop, render_html_report, write_html_report
+from bcf.core.material.texture_set import TextureSet, load_material
 from bcf.core.options import CompressOptions
-from bcf.core.sampling import ReferenceMaterial
+from bcf.core.fit.sampling import ReferenceMaterial
 
 CHAINMAIL = Path(__file__).resolve().parent / "data" / "chainmail_128"
 OPTIONS = CompressOptions(preset="fast", phase1_iterations=100, phase2_iterations=100, batch_size=4096)
@@ -109,7 +114,7 @@ class Material:
         self.report = rep
         self.with_baseline = rep.model_copy(
             update={"baselines": {"half_resolution": half_resolution_baseline(texture_set, reference, half)}})
-        model = export.load_export(folder).model
+        model = load_export(folder).model
         self.crops: list[Crop] = []
         self.ours_only: list[Crop] = []
         for mip, x, y, size in CROPS:

@@ -14,9 +14,10 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
-from bcf.core.images import read_image, read_rgb
-from bcf.core.material import (CHANNELS, TEXTURES, MaterialError, MaterialFiles, TextureSet, discover_material,
-                               load_material, load_texture_set, resolve_material)
+from bcf.core.material.images import read_image, read_rgb
+from bcf.core.material.roles import CHANNELS, TEXTURES, MaterialError, MaterialFiles
+from bcf.core.material.texture_set import TextureSet, load_material, load_texture_set
+from bcf.core.material.naming import discover_material, resolve_material
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = Path(__file__).resolve().parent / "data"
@@ -133,7 +134,7 @@ def test_discovery_matches_index_on_real_names(material: str, tmp_path: Path, ti
         {role: value for role, value in (("ao", 1.0), ("metalness", 0.0)) if role not in entry}
     assert texture_set.source.defaults == expected_defaults
     if material in CONVENTION_NOT_IN_NAME:
-        assert any("assuming OpenGL" in note and "--normal-convention" in note for note in texture_set.notes)
+        assert any("assuming OpenGL" in note and "normal convention" in note for note in texture_set.notes)
 
 
 def test_ambientcg_plain_normal_is_directx_with_a_note(tmp_path: Path, tiny_images: dict[str, bytes]) -> None:
@@ -141,7 +142,7 @@ def test_ambientcg_plain_normal_is_directx_with_a_note(tmp_path: Path, tiny_imag
         (tmp_path / file).write_bytes(tiny_images[".jpg"])
     found = discover_material(tmp_path)
     assert found.normal_convention == "directx"
-    assert any("Metal009_2K_Normal.jpg" in note and "--normal-convention" in note for note in found.notes)
+    assert any("Metal009_2K_Normal.jpg" in note and "normal convention" in note for note in found.notes)
     # An explicit convention settles it: no note, and the user's value is used.
     resolved = resolve_material(tmp_path, MaterialFiles(normal_convention="opengl"))
     assert resolved.normal_convention == "opengl"
@@ -273,7 +274,8 @@ def test_missing_normal(tmp_path: Path) -> None:
     message = error_of(load_material, tmp_path)
     assert str(tmp_path) in message
     assert "albedo albedo.png" in message and "roughness rough.png" in message  # what was found
-    assert "missing normal" in message and "--albedo/--normal/--arm/--roughness" in message
+    # Options are named as the models spell them; the CLI words them as flags, the service as form fields.
+    assert "missing normal" in message and "albedo/normal/arm/roughness" in message
 
 
 def test_missing_roughness_mentions_arm(tmp_path: Path) -> None:
@@ -294,7 +296,7 @@ def test_two_albedo_candidates(tmp_path: Path, first: str, second: str) -> None:
     for stem in (first, second):
         write_image(tmp_path / f"{stem}.png", noise(64, 64, 3))
     message = error_of(discover_material, tmp_path)
-    assert f"{first}.png" in message and f"{second}.png" in message and "albedo" in message and "--albedo" in message
+    assert f"{first}.png" in message and f"{second}.png" in message and "name it with albedo" in message
     # Naming the albedo explicitly settles it.
     resolved = resolve_material(tmp_path, MaterialFiles(albedo=tmp_path / f"{first}.png"))
     assert resolved.albedo == tmp_path / f"{first}.png"
@@ -364,14 +366,14 @@ def test_explicit_arm_with_roughness(tmp_path: Path) -> None:
     make_set(tmp_path, arm=(64, 64, 3))
     explicit = MaterialFiles(arm=tmp_path / "arm.png", roughness=tmp_path / "rough.png")
     message = error_of(load_material, tmp_path, explicit)
-    assert "arm.png" in message and "--arm cannot be combined with --roughness" in message
-    assert "--arm cannot be combined" in error_of(resolve_material, None, explicit)
+    assert "arm.png" in message and "arm cannot be combined with roughness" in message
+    assert "arm cannot be combined" in error_of(resolve_material, None, explicit)
 
 
 def test_explicit_file_missing(tmp_path: Path) -> None:
     make_set(tmp_path)
     message = error_of(load_material, tmp_path, MaterialFiles(normal=tmp_path / "other_normal.png"))
-    assert "other_normal.png" in message and "--normal" in message
+    assert "other_normal.png" in message and "given as normal" in message
 
 
 def test_load_texture_set_checks_completeness(tmp_path: Path) -> None:
@@ -421,7 +423,7 @@ def test_explicit_roughness_replaces_discovered_arm(tmp_path: Path) -> None:
     write_image(tmp_path / "other.png", noise(64, 64, 1, seed=9))
     resolved = resolve_material(tmp_path, MaterialFiles(roughness=tmp_path / "other.png"))
     assert resolved.arm is None and resolved.roughness == tmp_path / "other.png"
-    assert any("ignoring arm.png: --roughness given" == note for note in resolved.notes)
+    assert any("ignoring arm.png: roughness maps given explicitly" == note for note in resolved.notes)
     texture_set = load_texture_set(resolved)
     np.testing.assert_allclose(texture_set.channels[..., 6], oiio_pixels(tmp_path / "other.png")[..., 0], atol=1e-6)
     assert texture_set.source.defaults == {"ao": 1.0, "metalness": 0.0}
@@ -435,7 +437,7 @@ def test_explicit_files_without_folder(tmp_path: Path) -> None:
     texture_set = load_material(None, explicit)
     assert texture_set.source.name == "albedo"  # the albedo file's stem
     assert texture_set.source.normal_convention == "opengl"
-    assert any("n.png" in note and "assuming OpenGL" in note and "--normal-convention directx" in note
+    assert any("n.png" in note and "assuming OpenGL" in note and "normal convention to directx" in note
                for note in texture_set.notes)
     # A convention in the explicit normal's name is used; an explicit convention beats it.
     (tmp_path / "n.png").rename(tmp_path / "n_nor_dx.png")

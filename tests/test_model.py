@@ -9,9 +9,12 @@ import numpy as np
 import pytest
 import torch
 
-from bcf.core import bc6h, metrics, model, report
+from bcf.core.codec import bc6h
+from bcf.core.report import metrics
+from bcf.core.fit import model
+from bcf.core.report import report_json as report
 from bcf.core.options import PRESETS, CompressOptions, resolve_options
-from bcf.core.sampling import (ReferenceMaterial, material_mip_count, sample_bicubic, sample_bilinear,
+from bcf.core.fit.sampling import (ReferenceMaterial, material_mip_count, sample_bicubic, sample_bilinear,
                                sample_trilinear, texel_centres, trilinear_levels)
 
 

@@ -14,7 +14,8 @@ import matplotlib.image
 import numpy as np
 import pytest
 
-from bcf.core import gl, preview
+from bcf.engine import gl
+from bcf.engine import preview
 from bcf_command import run_bcf
 
 pytestmark = pytest.mark.gl

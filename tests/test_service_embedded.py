@@ -13,7 +13,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-from bcf.core import bc6h, containers, export
+from bcf.core import load_export
+from bcf.core.codec import bc6h
+from bcf.core.codec import containers
+from bcf.core.export import artifacts as export
 from bcf_command import run_bcf
 from reference_decoders import decode_with_oiio
 from service_harness import TINY_OPTIONS, BcfEnvironment, tiny_material
@@ -57,7 +60,7 @@ def test_submit_poll_download_and_decode_the_artifacts(service: Any, tmp_path: P
         assert sorted(z.namelist()) == sorted(done["result"]["artifacts"])
         z.extractall(folder)
     # The export loads (it checks every file against the manifest's SHA-256) and scores what the job said.
-    exported = export.load_export(folder)
+    exported = load_export(folder)
     report = json.loads((folder / "report.json").read_text())
     assert report["aggregate"]["psnr"]["all"] == pytest.approx(done["result"]["psnr"])
     assert exported.manifest.material.name == done["name"]

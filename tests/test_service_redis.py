@@ -10,7 +10,8 @@ from typing import Any
 
 import pytest
 
-from bcf.core import export
+from bcf.core import load_export
+from bcf.core.export import artifacts as export
 from service_harness import TINY_OPTIONS, BcfEnvironment, material_zip, redis_server, tiny_material
 
 
@@ -60,7 +61,7 @@ def test_jobs_submitted_to_the_api_run_on_both_workers_through_redis(farm: Any, 
     assert archive.status_code == 200
     with zipfile.ZipFile(io.BytesIO(archive.content)) as z:
         z.extractall(tmp_path / "result")
-    exported = export.load_export(tmp_path / "result")
+    exported = load_export(tmp_path / "result")
     assert exported.manifest.material.name == "Chainmail004_1K-PNG"  # the zip's folder
 
     metrics = server.client.get("/metrics").text

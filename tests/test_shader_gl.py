@@ -15,11 +15,16 @@ import numpy as np
 import pytest
 import torch
 
-from bcf.core import bc6h, compress, containers, export, metrics
-from bcf.core.gl import GLUnavailable, HeadlessGL
-from bcf.core.material import load_material
+from bcf.core import load_export
+from bcf.core.codec import bc6h
+from bcf.core import pipeline as compress
+from bcf.core.codec import containers
+from bcf.core.export import artifacts as export
+from bcf.core.report import metrics
+from bcf.engine.gl import GLUnavailable, HeadlessGL
+from bcf.core.material.texture_set import load_material
 from bcf.core.options import CompressOptions
-from bcf.core.shader import shader_source
+from bcf.engine.shader import shader_source
 from bcf_command import run_bcf
 
 pytestmark = pytest.mark.gl
@@ -66,7 +71,7 @@ def exported(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFa
     options = CompressOptions(preset="fast", phase1_iterations=150, phase2_iterations=150, batch_size=4096,
                               address=request.param)
     compress.compress_material(load_material(CHAINMAIL), options, folder)
-    return export.load_export(folder)
+    return load_export(folder)
 
 
 def feature_textures(gl: HeadlessGL, exported: export.ExportedMaterial) -> list[Any]:

@@ -21,9 +21,12 @@ import numpy as np
 import torch
 from torch import nn
 
-from bcf.core import bc6h
+from bcf.core.codec import bc6h
+from bcf.core.codec import partition
+from bcf.core.fit import block_decode
 from bcf.core.options import FEATURE_SCALES
-from bcf.core.sampling import Address, sample_trilinear
+from bcf.core.fit.sampling import sample_trilinear
+from bcf.core.options import Address
 
 __all__ = ["FEATURE_CHANNELS", "FEATURE_TEXTURES", "OUTPUT_CHANNELS", "BlockFeatures", "Decoder",
            "FeatureTextureSpec", "FreeFeatures", "NeuralMaterial", "StaticFeatures", "feature_textures",
@@ -148,11 +151,11 @@ class BlockFeatures(nn.Module):
     channels), 16 weights and a fixed partition, stored normalised: endpoints / (2^bits - 1) and weights in
     [0, 1], so learning rates mean the same for mode 10 and 11. Blocks are row-major over the level.
 
-    `level()` decodes with `bc6h.decode_blocks_differentiable`: bit-exact forward (the exported texture),
+    `level()` decodes with `block_decode.decode_blocks_differentiable`: bit-exact forward (the exported texture),
     straight-through rounding and the eq. 7-9 surrogate backward."""
 
     def __init__(self, specs: Sequence[FeatureTextureSpec], mode: Literal[10, 11],
-                 fits: Sequence[bc6h.BlockFit], device: str | torch.device = "cpu"):
+                 fits: Sequence[partition.BlockFit], device: str | torch.device = "cpu"):
         super().__init__()
         self.specs = tuple(specs)
         self.mode = mode
@@ -178,7 +181,7 @@ class BlockFeatures(nn.Module):
         i = self._index(texture, level)
         w, h = self.specs[texture].level_size(level)
         partition = self._partition(i) if self.spec.regions == 2 else None
-        texels = bc6h.decode_blocks_differentiable(self.endpoints[i] * self.top, self.weights[i], partition,
+        texels = block_decode.decode_blocks_differentiable(self.endpoints[i] * self.top, self.weights[i], partition,
                                                    signed=False)  # (nb, 16, 3)
         return texels.view(h // 4, w // 4, 4, 4, 3).permute(4, 0, 2, 1, 3).reshape(3, h, w)
 
@@ -194,8 +197,8 @@ class BlockFeatures(nn.Module):
         i = self._index(texture, level)
         w, h = self.specs[texture].level_size(level)
         with torch.no_grad():
-            ends = bc6h.quantize_endpoints(self.endpoints[i] * self.top, self.spec.endpoint_bits, False)
-            index = bc6h.quantize_weights(self.weights[i], self.spec.index_bits)
+            ends = block_decode.quantize_endpoints(self.endpoints[i] * self.top, self.spec.endpoint_bits, False)
+            index = block_decode.quantize_weights(self.weights[i], self.spec.index_bits)
         ends_np = ends.cpu().numpy().astype(np.int64)
         index_np = index.cpu().numpy().astype(np.int64)
         if self.spec.regions == 2:
@@ -249,7 +252,7 @@ def _feature_range(free: FreeFeatures, texture: int) -> tuple[np.ndarray, np.nda
 
 def to_block_features(free: FreeFeatures, decoder: Decoder, mode: Literal[10, 11]) -> BlockFeatures:
     """Phase 1 -> phase 2 (§5.1): map each feature channel's value range onto STORED_RANGE, fold the inverse map into the decoder's input scale/offset (so the MLP sees the same inputs),
-    then initialise the blocks by the partition search (`bc6h.fit_blocks`) on the mapped values.
+    then initialise the blocks by the partition search (`partition.fit_blocks`) on the mapped values.
     Changes `decoder` in place."""
     device = decoder.input_scale.device
     c0, c1 = STORED_RANGE
@@ -267,7 +270,7 @@ def to_block_features(free: FreeFeatures, decoder: Decoder, mode: Literal[10, 11
         for level in range(spec.levels):
             x = free.level(i, level).detach().cpu().numpy().astype(np.float64).transpose(1, 2, 0)
             stored = np.clip(c0 + (x - low) / (high - low) * (c1 - c0), c0, c1)
-            fits.append(bc6h.fit_blocks(bc6h.image_to_block_texels(stored).reshape(-1, 16, 3), regions,
+            fits.append(partition.fit_blocks(bc6h.image_to_block_texels(stored).reshape(-1, 16, 3), regions,
                                         signed=False))
     with torch.no_grad():
         decoder.input_scale.copy_(torch.from_numpy(scale))

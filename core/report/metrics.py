@@ -7,32 +7,25 @@ the mean over mips.
 
 from __future__ import annotations
 
-import math
-from typing import Callable, Optional
+from typing import Optional
 
 import torch
 import torch.nn.functional as F
 
-from bcf.core.material import TEXTURES
-from bcf.core.sampling import ReferenceMaterial, texel_centres
+from bcf.core.material.roles import TEXTURES
+from bcf.core.export.decode import DecoderFunction, render_mip
+from bcf.core.fit.sampling import ReferenceMaterial
+from bcf.core.psnr import psnr_from_mse
 
-__all__ = ["GROUPS", "MipScores", "evaluate", "mean_baseline", "psnr_from_mse", "render_mip", "render_region",
-           "ssim"]
+__all__ = ["GROUPS", "MipScores", "evaluate", "mean_baseline", "ssim"]
 
 # Score groups: the three textures and all 8 channels together.
 GROUPS: dict[str, slice] = {**TEXTURES, "all": slice(0, 8)}
 SSIM_WINDOW = 11
 SSIM_SIGMA = 1.5
 SSIM_K1, SSIM_K2 = 0.01, 0.03
-RENDER_CHUNK = 1 << 18  # samples per decoder call: bounds memory on 2K mips
 
-Decoder = Callable[[torch.Tensor, float], torch.Tensor]  # (uv (N, 2), s) -> (N, C)
 MipScores = dict[str, dict[str, float]]  # {"mse" | "psnr" | "ssim": {group: value}}
-
-
-def psnr_from_mse(mse: float) -> float:
-    """PSNR in dB for values in [0, 1] (peak 1). Capped at 100 dB for an exact match."""
-    return 100.0 if mse <= 1e-10 else -10.0 * math.log10(mse)
 
 
 def _gaussian_window(size: int, sigma: float, device: torch.device) -> torch.Tensor:
@@ -62,28 +55,6 @@ def ssim(reference: torch.Tensor, test: torch.Tensor) -> float:
     return float(value.mean())
 
 
-@torch.no_grad()
-def render_mip(decoder: Decoder, width: int, height: int, s: float,
-               jitter: Optional[torch.Generator] = None, device: str | torch.device = "cpu") -> torch.Tensor:
-    """Evaluate a decoder at the texel centres (or, with `jitter`, one random point per texel) of a
-    width x height grid at scale s: -> (C, height, width)."""
-    rows = max(1, RENDER_CHUNK // width)
-    parts = [decoder(texel_centres(width, height, slice(y, y + rows), device, jitter), s)
-             for y in range(0, height, rows)]
-    return torch.cat(parts, dim=0).T.reshape(-1, height, width)
-
-
-@torch.no_grad()
-def render_region(decoder: Decoder, width: int, height: int, s: float, x: int, y: int, size: int) -> torch.Tensor:
-    """Evaluate a decoder at the texel centres of the size x size square at (x, y) of a width x height grid at
-    scale s: -> (C, size, size). For crops of a large mip without rendering all of it."""
-    xs = (torch.arange(x, x + size, dtype=torch.float32) + 0.5) / width
-    ys = (torch.arange(y, y + size, dtype=torch.float32) + 0.5) / height
-    gy, gx = torch.meshgrid(ys, xs, indexing="ij")
-    uv = torch.stack([gx.reshape(-1), gy.reshape(-1)], dim=1)
-    return decoder(uv, s).T.reshape(-1, size, size)
-
-
 def _scores(reference: torch.Tensor, test: torch.Tensor) -> MipScores:
     out: MipScores = {"mse": {}, "psnr": {}, "ssim": {}}
     for name, channels in GROUPS.items():
@@ -96,7 +67,7 @@ def _scores(reference: torch.Tensor, test: torch.Tensor) -> MipScores:
 
 
 @torch.no_grad()
-def evaluate(decoder: Decoder, reference: ReferenceMaterial, jitter_seed: Optional[int] = None) -> list[MipScores]:
+def evaluate(decoder: DecoderFunction, reference: ReferenceMaterial, jitter_seed: Optional[int] = None) -> list[MipScores]:
     """Scores of `decoder` at every mip m of the reference (scale s = m).
 
     Without jitter: the decoder at the texel centres of mip m against the stored mip. With `jitter_seed`: the

@@ -23,47 +23,25 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, Sequence
+from typing import Sequence
 
 import numpy as np
 import torch
 
-from bcf.core import containers, images, metrics, report
-from bcf.core.material import TEXTURES
-from bcf.core.sampling import Address, ReferenceMaterial, sample_trilinear
+from bcf.core.codec import containers
+from bcf.core.material import images
+from bcf.core.report import metrics
+from bcf.core.export.decode import DecoderFunction
+from bcf.core.report import report_json as report
+from bcf.core.material.roles import TEXTURES
+from bcf.core.fit.sampling import ReferenceMaterial, sample_trilinear
+from bcf.core.options import BASELINES, Address, BaselineSpec
 
-__all__ = ["ASTC_QUALITY", "BASELINES", "BC1_LEVEL", "BaselineSpec", "DecodedBaseline", "PyramidDecoder",
-           "baseline_names", "encode_baseline", "evaluate_baseline", "parse_baselines",
+__all__ = ["ASTC_QUALITY", "BC1_LEVEL", "DecodedBaseline", "PyramidDecoder", "encode_baseline", "evaluate_baseline",
            "run_codec_baseline", "write_baseline_files"]
 
 BC1_LEVEL = 18  # quicktex's highest quality level
 ASTC_QUALITY = 98.0  # astcenc's "thorough" preset
-
-Codec = Literal["bc1_bc5", "astc", "naive_bc6"]
-
-
-@dataclass(frozen=True)
-class BaselineSpec:
-    name: str
-    codec: Codec
-    half: bool = False  # top mip at half the material's resolution
-    block: int = 4  # block side in texels (ASTC n x n)
-
-
-def _specs() -> dict[str, BaselineSpec]:
-    specs = [BaselineSpec(f"bc1_bc5_{r}", "bc1_bc5", r == "half") for r in ("full", "half")]
-    specs += [BaselineSpec(f"astc_{n}x{n}_{r}", "astc", r == "half", n) for n in (12, 8, 6) for r in ("full", "half")]
-    specs.append(BaselineSpec("naive_bc6", "naive_bc6"))
-    return {s.name: s for s in specs}
-
-
-BASELINES: dict[str, BaselineSpec] = _specs()
-
-
-def baseline_names(codecs: Sequence[Codec] = ("bc1_bc5", "astc", "naive_bc6")) -> list[str]:
-    """Names of the baselines of the given codecs, in BASELINES order."""
-    return [name for name, spec in BASELINES.items() if spec.codec in codecs]
-
 
 @dataclass
 class EncodedTexture:
@@ -211,7 +189,7 @@ def write_baseline_files(baseline: DecodedBaseline, folder: Path) -> list[Path]:
 
 
 class PyramidDecoder:
-    """A `metrics.Decoder` over decoded mips: trilinear lookups (eq. 10) at level s - lod_offset, what a
+    """A `DecoderFunction` over decoded mips: trilinear lookups (eq. 10) at level s - lod_offset, what a
     texture unit does for a texture whose top mip is 2^lod_offset times smaller than the material."""
 
     def __init__(self, mips: Sequence[np.ndarray], address: Address, lod_offset: int = 0):
@@ -224,7 +202,7 @@ class PyramidDecoder:
 
 
 def evaluate_baseline(description: str, encoder: str, width: int, height: int,
-                      decoder: metrics.Decoder, size_bytes: int, encode_s: float,
+                      decoder: DecoderFunction, size_bytes: int, encode_s: float,
                       reference: ReferenceMaterial) -> report.BaselineReport:
     """Score any baseline decoder at every reference mip, exactly as the exported material is scored."""
     started = time.perf_counter()
@@ -249,22 +227,3 @@ def run_codec_baseline(name: str, channels: np.ndarray, reference: ReferenceMate
     scored = evaluate_baseline(baseline.description, baseline.encoder, baseline.width, baseline.height,
                                decoder, baseline.size_bytes, baseline.encode_s, reference)
     return scored, decoder
-
-
-BASELINE_GROUPS: dict[str, Sequence[Codec]] = {"all": ("bc1_bc5", "astc", "naive_bc6"), "bc": ("bc1_bc5",),
-                                                "astc": ("astc",), "naive": ("naive_bc6",)}
-
-
-def parse_baselines(text: str) -> list[str]:
-    """'all', or a comma-separated list of groups (bc, astc, naive) and names (astc_12x12_full, ...) -> the
-    names, in BASELINES order. Raises ValueError naming what is unknown."""
-    wanted: set[str] = set()
-    for item in (part.strip() for part in text.split(",")):
-        if item in BASELINE_GROUPS:
-            wanted.update(baseline_names(BASELINE_GROUPS[item]))
-        elif item in BASELINES:
-            wanted.add(item)
-        else:
-            raise ValueError(f"unknown baseline {item!r}: use all, bc, astc, naive or names from "
-                             f"{', '.join(BASELINES)}")
-    return [name for name in BASELINES if name in wanted]

@@ -30,9 +30,9 @@ from matplotlib.image import imsave
 from matplotlib.text import Annotation
 from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
-from bcf.core.material import TEXTURES, material_images
-from bcf.core.metrics import psnr_from_mse
-from bcf.core.report import Aggregate, MipMetrics, Report
+from bcf.core.material.roles import TEXTURES, material_images
+from bcf.core.psnr import psnr_from_mse
+from bcf.core.report.report_json import Aggregate, MipMetrics, Report
 
 __all__ = ["HTML_REPORT_FILE", "Crop", "render_html_report", "write_html_report"]
 

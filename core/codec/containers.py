@@ -38,6 +38,8 @@ from os import PathLike
 from pathlib import Path
 from typing import Sequence, Union
 
+from bcf.core.errors import InputError
+
 import numpy as np
 
 __all__ = [
@@ -108,7 +110,7 @@ KTX_WRITER = "bcf"
 ASTC_MAGIC = bytes([0x13, 0xAB, 0xA1, 0x5C])  # the .astc file identifier
 
 
-class ContainerError(ValueError):
+class ContainerError(InputError):
     """A DDS or KTX2 file that is malformed or not a 2D BC6H texture this module supports."""
 
 

@@ -20,8 +20,7 @@ from typing import Literal
 
 import numpy as np
 
-from bcf import __version__
-from bcf.core import export
+from bcf.core import Manifest, __version__, load_export
 
 __all__ = ["LANGUAGES", "ShaderLanguage", "shader_source"]
 
@@ -72,7 +71,7 @@ def _literal(value: float) -> str:
     return text if any(c in text for c in ".e") else text + ".0"
 
 
-def _template(t: _Tokens, m: export.Manifest, layers: list[tuple[np.ndarray, np.ndarray]]) -> str:
+def _template(t: _Tokens, m: Manifest, layers: list[tuple[np.ndarray, np.ndarray]]) -> str:
     (w1, b1), (w2, b2) = layers
     hidden, inputs = w1.shape
     outputs = w2.shape[0]
@@ -150,7 +149,7 @@ BcfMaterial bcf_decode_grad({t.vec2} uv, {t.vec2} dx, {t.vec2} dy) {{
 
 def shader_source(folder: Path, language: ShaderLanguage) -> str:
     """The decoder of the export folder `folder` in `language`; reads (and checks) its files like `bcf decode`."""
-    exported = export.load_export(Path(folder))
+    exported = load_export(Path(folder))
     layers = [(w.numpy(), b.numpy()) for w, b in exported.model.decoder.folded_layers()]
     tokens = {"glsl": _GLSL, "hlsl": _HLSL}[language]
     return _template(tokens, exported.manifest, layers)

@@ -12,18 +12,18 @@ Conventions used everywhere in bcf:
 from __future__ import annotations
 
 import math
-from typing import Callable, Literal
+from typing import Callable
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-from bcf.core import images
+from bcf.core.material import images
+from bcf.core.options import Address
 
 __all__ = ["Address", "ReferenceMaterial", "material_mip_count", "sample_bicubic", "sample_bilinear",
            "sample_trilinear", "texel_centres", "trilinear_levels"]
 
-Address = Literal["wrap", "clamp"]
 _BICUBIC_PAD = 2  # texels a bicubic tap reaches beyond the sample's own texel
 
 

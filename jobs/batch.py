@@ -22,11 +22,9 @@ from typing import Callable, Literal, Optional, Sequence
 
 from pydantic import BaseModel
 
-from bcf import __version__
-from bcf.core import compress, export, material, report
-from bcf.core.assets import AssetScan, FoundMaterial
-from bcf.core.options import JobOptions, resolve_options
-from bcf.core.training import TrainingProgress
+from bcf.core import (GENERATOR, MANIFEST_FILE, AssetScan, FoundMaterial, JobOptions, MaterialError, MaterialFiles,
+                      OutputExistsError, Report, ReportError, TrainingProgress, compress_material, file_sha256,
+                      is_current, load_texture_set, read_report, result_identity)
 
 __all__ = ["BATCH_SUMMARY_FILE", "BatchItem", "BatchMaterial", "BatchSummary", "MaterialEvent", "format_summary",
            "plan_batch", "previous_result", "run_local", "split_done", "summarise", "write_summary"]
@@ -67,7 +65,7 @@ class BatchMaterial:
     """A found material with absolute paths: its files and where its result goes."""
 
     found: FoundMaterial
-    files: material.MaterialFiles
+    files: MaterialFiles
     output: Path
     output_name: str  # relative to the batch output folder, POSIX
 
@@ -117,29 +115,22 @@ def plan_batch(scan: AssetScan, root: Path, output: Path) -> list[BatchMaterial]
             for m, name in zip(scan.materials, names)]
 
 
-def previous_result(entry: BatchMaterial, options: JobOptions) -> Optional[report.Report]:
-    """The report of an earlier successful output of this material made from the same file contents (SHA-256
-    per role, as recorded in the manifest), the same normal convention, the same resolved options (any
-    device) and at least the wanted baselines; else None."""
-    try:
-        previous = report.read_report(entry.output)
-        manifest = export.read_manifest(entry.output)
-    except (report.ReportError, export.ExportError, OSError):
+def previous_result(entry: BatchMaterial, options: JobOptions) -> Optional[Report]:
+    """The report of an earlier output of this material that is still current (`bcf.core.is_current`: same file
+    contents, convention, size and options, at least the wanted baselines); else None."""
+    if entry.found.resolution is None:
         return None
     try:
-        hashes = {role: material.file_sha256(Path(path)) for role, path in entry.files.roles().items()}
-    except OSError:
+        previous = read_report(entry.output)
+        hashes = {role: file_sha256(Path(path)) for role, path in entry.files.roles().items()}
+    except (ReportError, OSError):
         return None
-    recorded = {f.role: f.sha256 for f in manifest.material.files}
-    wanted = resolve_options(options.compress_options()).model_dump(exclude={"device"})
-    convention = entry.files.normal_convention or "opengl"
-    same = (recorded == hashes and manifest.material.normal_convention == convention
-            and previous.options.model_dump(exclude={"device"}) == wanted
-            and set(options.baselines) <= set(previous.baselines))
-    return previous if same else None
+    wanted = result_identity(hashes, entry.files.normal_convention or "opengl", tuple(entry.found.resolution),
+                             options.compress_options())
+    return previous if is_current(previous, wanted, options.baselines) else None
 
 
-def result_item(entry: BatchMaterial, rep: report.Report, status: Status, seconds: float,
+def result_item(entry: BatchMaterial, rep: Report, status: Status, seconds: float,
                 **values: object) -> BatchItem:
     return entry.item(status, psnr=rep.aggregate.psnr.all, ssim=rep.aggregate.ssim.all,
                       size_bytes=rep.size.total_bytes, seconds=round(seconds, 2), **values)
@@ -161,8 +152,8 @@ def split_done(plan: Sequence[BatchMaterial], options: JobOptions,
 
 def check_replaceable(output: Path) -> None:
     """Only an earlier bcf result (or an empty folder) may be replaced: never a user's own folder."""
-    if output.is_dir() and any(output.iterdir()) and not (output / export.MANIFEST_FILE).is_file():
-        raise compress.OutputExistsError(f"{output}: exists and is not a bcf output folder; move it away")
+    if output.is_dir() and any(output.iterdir()) and not (output / MANIFEST_FILE).is_file():
+        raise OutputExistsError(f"{output}: exists and is not a bcf output folder; move it away")
 
 
 # ------------------------------------------------------------------------------------------------ local
@@ -179,10 +170,10 @@ def compress_one(entry: BatchMaterial, options: JobOptions,
     started = time.perf_counter()
     try:
         if entry.found.problems:
-            raise material.MaterialError("; ".join(entry.found.problems))
+            raise MaterialError("; ".join(entry.found.problems))
         check_replaceable(entry.output)
-        texture_set = material.load_texture_set(entry.files, name=entry.found.material.replace("/", "_"))
-        rep = compress.compress_material(texture_set, options.compress_options(), entry.output,
+        texture_set = load_texture_set(entry.files, name=entry.found.material.replace("/", "_"))
+        rep = compress_material(texture_set, options.compress_options(), entry.output,
                                          progress=on_progress, overwrite=True, baselines=options.baselines,
                                          note=on_stage)
     except Exception as exc:  # one material's failure is reported, the batch goes on
@@ -278,7 +269,7 @@ def summarise(root: Path, output: Path, mode: Literal["local", "submit"], option
     ordered = sorted(items, key=lambda item: item.output)
     counts = {status: sum(item.status == status for item in ordered)
               for status in ("compressed", "skipped", "failed", "interrupted")}
-    return BatchSummary(generator=f"bcf {__version__}", root=str(Path(root).resolve()),
+    return BatchSummary(generator=GENERATOR, root=str(Path(root).resolve()),
                         output=str(Path(output).resolve()), mode=mode, options=options, started_at=started_at,
                         seconds=round(seconds, 2), counts=counts, items=ordered)
 

@@ -14,6 +14,8 @@ from typing import Literal, Union
 import numpy as np
 import OpenImageIO as oiio
 
+from bcf.core.errors import InputError
+
 __all__ = ["ImageReadError", "ImageWriteError", "WRITE_EXTENSIONS", "mip_chain", "read_image", "read_rgb", "write_rgb"]
 
 StrPath = Union[str, PathLike]
@@ -22,11 +24,11 @@ StrPath = Union[str, PathLike]
 WRITE_EXTENSIONS = {".exr": "half", ".png": "uint16"}
 
 
-class ImageReadError(ValueError):
+class ImageReadError(InputError):
     """An image file that is missing or that OpenImageIO cannot read; the message names the file."""
 
 
-class ImageWriteError(ValueError):
+class ImageWriteError(InputError):
     """An image that cannot be written (bad extension or an OpenImageIO failure); the message names the file."""
 
 
@@ -41,16 +43,16 @@ def read_image(path: StrPath) -> np.ndarray:
     """
     file = Path(path)
     if not file.exists():
-        raise ImageReadError(f"{path}: no such file")
+        raise ImageReadError("no such file", file=path)
     if not file.is_file():
-        raise ImageReadError(f"{path}: not a regular file")
+        raise ImageReadError("not a regular file", file=path)
     # By default OIIO premultiplies colour by alpha for formats that store it unassociated (PNG, TIFF, ...);
     # ask for the channels untouched so RGBA and grey+alpha files give the stored values.
     config = oiio.ImageSpec()
     config.attribute("oiio:UnassociatedAlpha", 1)
     image_input = oiio.ImageInput.open(str(file), config)
     if image_input is None:
-        raise ImageReadError(f"{path}: cannot read image: {oiio.geterror() or 'unknown OpenImageIO error'}")
+        raise ImageReadError(f"cannot read image: {oiio.geterror() or 'unknown OpenImageIO error'}", file=path)
     try:
         channels = image_input.spec().nchannels
         pixels = image_input.read_image(0, 0, 0, channels, "float")
@@ -60,7 +62,7 @@ def read_image(path: StrPath) -> np.ndarray:
     finally:
         image_input.close()
     if pixels is None or problem:
-        raise ImageReadError(f"{path}: cannot read image: {problem or 'unknown OpenImageIO error'}")
+        raise ImageReadError(f"cannot read image: {problem or 'unknown OpenImageIO error'}", file=path)
     return np.asarray(pixels, dtype=np.float32).reshape(*pixels.shape[:2], channels)
 
 
@@ -98,7 +100,7 @@ def write_rgb(path: StrPath, image: np.ndarray, png_bits: Literal[8, 16] = 16) -
         raise ValueError(f"{path}: write_rgb needs an (h, w, 3) image, got shape {image.shape}")
     suffix = Path(path).suffix.lower()
     if suffix not in WRITE_EXTENSIONS:
-        raise ImageWriteError(f"{path}: unsupported image extension {suffix or '(none)'!r}; "
+        raise ImageWriteError(f"unsupported image extension {suffix or '(none)'!r}; "
                               f"use one of {', '.join(WRITE_EXTENSIONS)}")
     if suffix == ".exr":
         with np.errstate(over="ignore"):  # overflow to +-inf is the documented behaviour, not a surprise
@@ -118,14 +120,14 @@ def _write_pixels(path: StrPath, pixels: np.ndarray, pixel_type: str) -> None:
     height, width, channels = pixels.shape
     output = oiio.ImageOutput.create(str(path))
     if output is None:
-        raise ImageWriteError(f"{path}: cannot write image: {oiio.geterror()}")
+        raise ImageWriteError(f"cannot write image: {oiio.geterror()}", file=path)
     if not output.open(str(path), oiio.ImageSpec(width, height, channels, pixel_type)):
-        raise ImageWriteError(f"{path}: cannot write image: {output.geterror()}")
+        raise ImageWriteError(f"cannot write image: {output.geterror()}", file=path)
     ok = output.write_image(pixels)
     problem = output.geterror()
     closed = output.close()
     if not ok or not closed or problem:
-        raise ImageWriteError(f"{path}: cannot write image: {problem or output.geterror() or 'write failed'}")
+        raise ImageWriteError(f"cannot write image: {problem or output.geterror() or 'write failed'}", file=path)
 
 
 # ------------------------------------------------------------------------------------------------- mips

@@ -24,10 +24,9 @@ from typing import Callable, Optional, Sequence
 
 import numpy as np
 
-from bcf.core import compress, images, material, report
-from bcf.core.metrics import psnr_from_mse
-from bcf.core.options import CompressOptions, FeatureSize, Preset, resolve_options
-from bcf.core.training import ProgressCallback
+from bcf.core import (CompressOptions, InputError, FeatureSize, MaterialFiles, MaterialSource, MipMetrics, Preset,
+                      ProgressCallback, Report, ReportError, TextureSet, compress_material, is_current,
+                      load_texture_set, mip_chain, psnr_from_mse, read_report, resolve_material, result_identity)
 
 __all__ = ["BenchError", "BenchMaterial", "MethodSummary", "find_materials", "downscale", "run_bench",
            "summarise_bench", "write_bench_outputs"]
@@ -36,14 +35,14 @@ INDEX_FILE = "index.json"
 NoteCallback = Callable[[str], None]
 
 
-class BenchError(ValueError):
+class BenchError(InputError):
     """A materials folder that holds no usable material, or a bad benchmark option."""
 
 
 @dataclass(frozen=True)
 class BenchMaterial:
     name: str
-    files: material.MaterialFiles
+    files: MaterialFiles
     address: str  # wrap for tiling materials, clamp for UV atlases
 
 
@@ -53,7 +52,7 @@ def _from_index(root: Path, index: dict) -> list[BenchMaterial]:
     for name, entry in sorted(index.get("materials", {}).items()):
         roles = {role: root / name / entry[role] for role in ("albedo", "normal", "arm", "ao", "roughness",
                                                                "metalness") if role in entry}
-        files = material.MaterialFiles(**roles, normal_convention=entry.get("normal_convention"))
+        files = MaterialFiles(**roles, normal_convention=entry.get("normal_convention"))
         found.append(BenchMaterial(name, files, "clamp" if entry.get("layout") == "uv-atlas" else "wrap"))
     return found
 
@@ -71,7 +70,7 @@ def find_materials(root: Path, only: Optional[Sequence[str]] = None) -> list[Ben
         except (ValueError, KeyError, TypeError) as exc:
             raise BenchError(f"{index}: not a materials index ({exc})") from None
     else:
-        found = [BenchMaterial(d.name, material.resolve_material(d, material.MaterialFiles()), "wrap")
+        found = [BenchMaterial(d.name, resolve_material(d, MaterialFiles()), "wrap")
                  for d in sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))]
     if only:
         unknown = sorted(set(only) - {m.name for m in found})
@@ -83,51 +82,52 @@ def find_materials(root: Path, only: Optional[Sequence[str]] = None) -> list[Ben
     return found
 
 
-def downscale(texture_set: material.TextureSet, max_size: int) -> material.TextureSet:
+def downscale(texture_set: TextureSet, max_size: int) -> TextureSet:
     """Box-filter the material down (by whole mip levels) until neither side exceeds `max_size`."""
     levels = 1
     while max(texture_set.width, texture_set.height) >> (levels - 1) > max_size:
         levels += 1
     if levels == 1:
         return texture_set
-    channels = images.mip_chain(texture_set.channels, levels)[-1]
+    channels = mip_chain(texture_set.channels, levels)[-1]
     h, w = channels.shape[:2]
     source = texture_set.source.model_copy(update={"width": w, "height": h})
     note = f"downscaled from {texture_set.width}x{texture_set.height} to {w}x{h} for the benchmark"
-    return material.TextureSet(channels, source, texture_set.notes + (note,))
+    return TextureSet(channels, source, texture_set.notes + (note,))
 
 
 # --------------------------------------------------------------------------------------------------- run
 
 
-def _kept_report(folder: Path, options: CompressOptions, source: material.MaterialSource,
-                 baselines: Sequence[str]) -> Optional[report.Report]:
-    """The report of a finished earlier run in `folder` made from the same inputs at the same size (so a
-    different --max-size or a changed file recompresses), with the same resolved options and at least the
-    wanted baselines; else None."""
+def _kept_report(folder: Path, options: CompressOptions, source: MaterialSource,
+                 baselines: Sequence[str]) -> Optional[Report]:
+    """The report of a finished earlier run in `folder` that is still current (`bcf.core.is_current`: same inputs
+    at the same size, so a different --max-size or a changed file recompresses, same options, at least the
+    wanted baselines); else None."""
     try:
-        previous = report.read_report(folder)
-    except report.ReportError:
+        previous = read_report(folder)
+    except ReportError:
         return None
-    same = previous.material == source and previous.options == resolve_options(options)
-    return previous if same and set(baselines) <= set(previous.baselines) else None
+    wanted = result_identity({f.role: f.sha256 for f in source.files}, source.normal_convention,
+                             (source.width, source.height), options)
+    return previous if is_current(previous, wanted, baselines) else None
 
 
 def run_bench(root: Path, output: Path, preset: Preset = "default",
               features: Sequence[FeatureSize] = ("0.5k", "1k", "2k"), baselines: Sequence[str] = (),
               max_size: Optional[int] = None, only: Optional[Sequence[str]] = None, device: str = "cpu",
               note: Optional[NoteCallback] = None,
-              progress: Optional[ProgressCallback] = None) -> dict[str, dict[str, report.Report]]:
+              progress: Optional[ProgressCallback] = None) -> dict[str, dict[str, Report]]:
     """Compress every material at every feature size into output/<material>/<features>/; the BC/ASTC
     baselines run with the first feature size (they do not depend on it), naive_bc6 with every one.
     Returns {material: {features: report}}."""
     say = note or (lambda message: None)
     materials = find_materials(root, only)
     codec_baselines = [b for b in baselines if b != "naive_bc6"]
-    reports: dict[str, dict[str, report.Report]] = {}
+    reports: dict[str, dict[str, Report]] = {}
     started = time.perf_counter()
     for number, entry in enumerate(materials, 1):
-        texture_set = material.load_texture_set(entry.files, entry.name)
+        texture_set = load_texture_set(entry.files, entry.name)
         if max_size is not None:
             texture_set = downscale(texture_set, max_size)
         reports[entry.name] = {}
@@ -141,7 +141,7 @@ def run_bench(root: Path, output: Path, preset: Preset = "default",
             else:
                 say(f"[{number}/{len(materials)}] {entry.name} {size}: {texture_set.width}x{texture_set.height}, "
                     f"{entry.address} ({time.perf_counter() - started:.0f} s so far)")
-                kept = compress.compress_material(texture_set, options, folder, progress=progress, overwrite=True,
+                kept = compress_material(texture_set, options, folder, progress=progress, overwrite=True,
                                                   baselines=wanted)
             reports[entry.name][size] = kept
     return reports
@@ -165,14 +165,14 @@ class MethodSummary:
     materials: int
 
 
-def _mean_mse(per_mip: Sequence[report.MipMetrics], texture: str) -> float:
+def _mean_mse(per_mip: Sequence[MipMetrics], texture: str) -> float:
     return float(np.mean([getattr(m.mse, texture) for m in per_mip]))
 
 
-MethodEntry = tuple[str, list[report.MipMetrics], float, float, int]  # material, per_mip, ssim, bits/texel, bytes
+MethodEntry = tuple[str, list[MipMetrics], float, float, int]  # material, per_mip, ssim, bits/texel, bytes
 
 
-def _method_rows(reports: dict[str, dict[str, report.Report]]) -> dict[str, list[MethodEntry]]:
+def _method_rows(reports: dict[str, dict[str, Report]]) -> dict[str, list[MethodEntry]]:
     """method -> [(material, per_mip, ssim, bits_per_texel, bytes)] for ours (per feature size) and every baseline
     (naive_bc6 per feature size too)."""
     rows: dict[str, list[MethodEntry]] = {}
@@ -187,7 +187,7 @@ def _method_rows(reports: dict[str, dict[str, report.Report]]) -> dict[str, list
     return rows
 
 
-def summarise_bench(reports: dict[str, dict[str, report.Report]]) -> list[MethodSummary]:
+def summarise_bench(reports: dict[str, dict[str, Report]]) -> list[MethodSummary]:
     """Table 2: every method over the materials it ran on, smallest first."""
     summary = []
     for method, entries in _method_rows(reports).items():
@@ -200,7 +200,7 @@ def summarise_bench(reports: dict[str, dict[str, report.Report]]) -> list[Method
     return sorted(summary, key=lambda s: (s.mib, s.method))
 
 
-def _per_material_table(reports: dict[str, dict[str, report.Report]]) -> list[str]:
+def _per_material_table(reports: dict[str, dict[str, Report]]) -> list[str]:
     methods = sorted(_method_rows(reports))
     lines = ["| material | size | " + " | ".join(methods) + " |", "|---|---|" + "---:|" * len(methods)]
     for name, by_size in reports.items():
@@ -213,7 +213,7 @@ def _per_material_table(reports: dict[str, dict[str, report.Report]]) -> list[st
     return lines
 
 
-def _markdown(summary: Sequence[MethodSummary], reports: dict[str, dict[str, report.Report]],
+def _markdown(summary: Sequence[MethodSummary], reports: dict[str, dict[str, Report]],
               header: str) -> str:
     lines = [header, "",
              "| method | PSNR (dB) | albedo | normal | ARM | SSIM | MiB per material | bits/texel | materials |",
@@ -267,7 +267,7 @@ def _plot(summary: Sequence[MethodSummary], path: Path, title: str) -> None:
     figure.savefig(path)
 
 
-def write_bench_outputs(output: Path, reports: dict[str, dict[str, report.Report]], header: str) -> list[Path]:
+def write_bench_outputs(output: Path, reports: dict[str, dict[str, Report]], header: str) -> list[Path]:
     """bench.md, bench.csv, bench.json and bench.png in `output`."""
     summary = summarise_bench(reports)
     output.mkdir(parents=True, exist_ok=True)

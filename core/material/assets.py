@@ -21,8 +21,10 @@ from typing import Literal, Optional
 
 import pydantic
 
-from . import material
-from .material import MaterialError, MaterialFiles, NormalConvention
+from bcf.core.material.naming import _NOISE, _SEPARATORS, _choose, _classify, _join, _missing_roles, _scan_files
+from bcf.core.material.roles import IMAGE_EXTENSIONS, ROLES
+from bcf.core.material.texture_set import _read_header, load_texture_set
+from bcf.core.material.roles import MaterialError, MaterialFiles, NormalConvention
 
 __all__ = ["AssetRole", "AssetScan", "FoundMaterial", "Unplaced", "scan_assets"]
 
@@ -30,7 +32,7 @@ AssetRole = Literal["albedo", "normal", "arm", "ao", "roughness", "metalness", "
 
 # Folders that hold no materials: archive and OS clutter (hidden names, starting with ".", are skipped too).
 _SKIPPED_FOLDERS = frozenset({"__macosx", "__pycache__", "$recycle.bin", "system volume information"})
-_TOKEN = re.compile(r"[^_\-.\s]+")  # the complement of material._SEPARATORS: a name's tokens, with positions
+_TOKEN = re.compile(r"[^_\-.\s]+")  # the complement of _SEPARATORS: a name's tokens, with positions
 
 
 class FoundMaterial(pydantic.BaseModel):
@@ -49,9 +51,9 @@ class FoundMaterial(pydantic.BaseModel):
 
     def material_files(self, root: Path) -> MaterialFiles:
         """The compressible roles as absolute paths under `root`, with the normal convention, ready for
-        `material.load_texture_set` (which checks completeness again)."""
+        `load_texture_set` (which checks completeness again)."""
         root = Path(root).resolve()
-        roles = {role: root / path for role, path in self.files.items() if role in material.ROLES}
+        roles = {role: root / path for role, path in self.files.items() if role in ROLES}
         return MaterialFiles(**roles, normal_convention=self.normal_convention)
 
 
@@ -88,7 +90,7 @@ class _Image:
 def scan_assets(root: Path) -> AssetScan:
     """The materials under `root` (recursively, in sorted order) and the images that fit none.
 
-    Only image files (material.IMAGE_EXTENSIONS) count; hidden files and folders and archive clutter are
+    Only image files (IMAGE_EXTENSIONS) count; hidden files and folders and archive clutter are
     skipped. Raises MaterialError if `root` is not a folder.
     """
     root = Path(root)
@@ -114,7 +116,7 @@ def _walk(root: Path) -> Iterator[tuple[Path, list[_Image]]]:
         folders[:] = sorted(f for f in folders if not _hidden(f) and f.lower() not in _SKIPPED_FOLDERS)
         folder = Path(current)
         paths = [folder / name for name in sorted(names)
-                 if not _hidden(name) and Path(name).suffix.lower() in material.IMAGE_EXTENSIONS]
+                 if not _hidden(name) and Path(name).suffix.lower() in IMAGE_EXTENSIONS]
         paths = [path for path in paths if path.is_file()]
         if paths:
             yield folder, [_image(root, path) for path in paths]
@@ -125,13 +127,13 @@ def _hidden(name: str) -> bool:
 
 
 def _image(root: Path, path: Path) -> _Image:
-    """Classify one image by its name (material._classify) and work out its prefix."""
-    named = material._classify(path)
+    """Classify one image by its name (_classify) and work out its prefix."""
+    named = _classify(path)
     role: Optional[AssetRole] = named.role if named.role is not None else named.extra
     spans = [(m.start(), m.end(), m.group().lower()) for m in _TOKEN.finditer(path.stem)][:named.prefix]
     # Resolution and format tokens before the map name (ambientCG's `Metal009_2K_Color`) are not part of the
     # material's name; numbers are (`denim_fabric_02`, `brick_01` next to `brick_02`).
-    while spans and material._NOISE.fullmatch(spans[-1][2]) and not spans[-1][2].isdigit():
+    while spans and _NOISE.fullmatch(spans[-1][2]) and not spans[-1][2].isdigit():
         spans.pop()
     return _Image(path=path, rel=path.relative_to(root).as_posix(), role=role,
                   unknown=named.role is None and not named.unused,
@@ -151,7 +153,7 @@ def _scan_folder(root: Path, folder: Path, images: list[_Image]) -> tuple[list[F
     albedo_keys = list(dict.fromkeys(image.key for image in listed if image.role == "albedo"))
     if len(albedo_keys) <= 1:
         # One material: the folder as `bcf compress FOLDER` sees it, every image included (so notes agree).
-        if not any(image.role in material.ROLES for image in listed):
+        if not any(image.role in ROLES for image in listed):
             unplaced += [Unplaced(path=image.rel, reason="no albedo, normal or roughness map in this folder")
                          for image in listed]
             return [], unplaced
@@ -174,11 +176,11 @@ def _material(root: Path, folder: Path, name: str, output: str, images: list[_Im
     """One material from `images` (all in `folder`) with the one-folder discovery; `key` is its albedo's prefix."""
     rel_dir = folder.relative_to(root).as_posix()
     problems: list[str] = []
-    scan = material._scan_files(image.path for image in images)
-    chosen = material._choose(Path(rel_dir), scan, problems=problems)
+    scan = _scan_files(image.path for image in images)
+    chosen = _choose(Path(rel_dir), scan, problems=problems)
     roles = chosen.roles()
     # A role with several candidates already has its problem; it is not missing as well.
-    missing = material._missing_roles(role for role, candidates in scan.candidates.items() if candidates)
+    missing = _missing_roles(role for role, candidates in scan.candidates.items() if candidates)
     if missing:
         problems.append(f"incomplete material: missing {', '.join(missing)}")
     files: dict[AssetRole, str] = {role: path.relative_to(root).as_posix() for role, path in roles.items()}
@@ -202,14 +204,14 @@ def _pick_extra(role: str, candidates: list[_Image], key: str | None) -> tuple[s
     preferred = [image for image in candidates if image.key == key] or candidates
     chosen = preferred[0]
     others = [image.path.name for image in candidates if image is not chosen]
-    note = [f"several {role} maps: listing {chosen.path.name}, not {material._join(others)}"] if others else []
+    note = [f"several {role} maps: listing {chosen.path.name}, not {_join(others)}"] if others else []
     return chosen.rel, note
 
 
 def _resolution(path: Path) -> tuple[int, int] | None:
     """(width, height) from the image header, without decoding pixels; None if it cannot be read."""
     try:
-        header = material._read_header(path)
+        header = _read_header(path)
     except MaterialError:
         return None
     return header.width, header.height
@@ -225,4 +227,4 @@ def _flag_shared_outputs(materials: list[FoundMaterial]) -> None:
         for found in shared if len(shared) > 1 else []:
             others = [other.material for other in shared if other is not found]
             found.problems.append(f"output folder '{found.output}' is also the output of "
-                                  f"{material._join(others)}; rename or move one")
+                                  f"{_join(others)}; rename or move one")

@@ -7,20 +7,21 @@ reference F(M) and the model G at them, MSE (eq. 5), Adam step, exponential lear
 from __future__ import annotations
 
 import copy
-import math
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Optional
 
 import torch
 
-from bcf.core.material import TextureSet
-from bcf.core.model import (BlockFeatures, Decoder, FeatureTextureSpec, FreeFeatures, NeuralMaterial,
+from bcf.core.errors import InputError
+from bcf.core.material.texture_set import TextureSet
+from bcf.core.fit.model import (BlockFeatures, Decoder, FeatureTextureSpec, FreeFeatures, NeuralMaterial,
                             feature_textures, to_block_features)
 from bcf.core.options import ResolvedOptions
-from bcf.core.sampling import ReferenceMaterial
+from bcf.core.fit.sampling import ReferenceMaterial
+from bcf.core.psnr import psnr_from_mse
 
-__all__ = ["DeviceUnavailableError", "FitResult", "TrainingProgress", "TrainingStopped", "fit"]
+__all__ = ["DeviceUnavailableError", "FitResult", "TrainingProgress", "TrainingStopped", "fit", "require_device"]
 
 PROGRESS_INTERVAL_S = 0.5
 HISTORY_INTERVAL_S = 2.0
@@ -47,8 +48,16 @@ class HistoryPoint:
     psnr: float
 
 
-class DeviceUnavailableError(ValueError):
+class DeviceUnavailableError(InputError):
     """The requested torch device does not exist on this machine."""
+
+
+def require_device(device: str) -> None:
+    """Raise DeviceUnavailableError unless torch can use `device` ("cpu" or "cuda") here."""
+    if device == "cuda" and not torch.cuda.is_available():
+        raise DeviceUnavailableError(f"device 'cuda' requested, but torch {torch.__version__} sees no CUDA device "
+                                     "(a CPU-only build, or no GPU or driver)", fix="use {} cpu",
+                                     options=["device"])
 
 
 class TrainingStopped(Exception):
@@ -72,10 +81,6 @@ StopCallback = Callable[[], bool]
 # Called with (phase, iteration, model) every `checkpoint_every` iterations and at the end of each phase
 # (benchmarks evaluate the model there; the time it takes is not excluded from the phase timings).
 CheckpointCallback = Callable[[int, int, NeuralMaterial], None]
-
-
-def _psnr(mse: float) -> float:
-    return 10.0 * math.log10(1.0 / max(mse, 1e-12))
 
 
 def _train_phase(model: NeuralMaterial, reference: ReferenceMaterial, phase: int, iterations: int,
@@ -112,11 +117,11 @@ def _train_phase(model: NeuralMaterial, reference: ReferenceMaterial, phase: int
         running = loss.detach() if running is None else running * 0.95 + loss.detach() * 0.05
         now = time.perf_counter()
         if now - last_history >= HISTORY_INTERVAL_S or iteration == iterations:
-            history.append(HistoryPoint(phase, iteration, now - start, _psnr(float(running))))
+            history.append(HistoryPoint(phase, iteration, now - start, psnr_from_mse(float(running))))
             last_history = now
         if progress is not None and (now - last_report >= PROGRESS_INTERVAL_S or iteration == iterations):
             rate = iteration / max(now - phase_start, 1e-9)
-            progress(TrainingProgress(phase, iteration, iterations, _psnr(float(running)), rate,
+            progress(TrainingProgress(phase, iteration, iterations, psnr_from_mse(float(running)), rate,
                                       (iterations - iteration) / rate, now - start))
             last_report = now
         if checkpoint is not None and (iteration == iterations or
@@ -132,10 +137,8 @@ def fit(material: TextureSet, options: ResolvedOptions, progress: Optional[Progr
     Raises TrainingStopped when `should_stop()` turns True (checked every iteration). CPU runs with the same
     options and seed give identical results.
     """
+    require_device(options.device)
     device = torch.device(options.device)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise DeviceUnavailableError("device 'cuda' requested, but torch sees no CUDA device (CPU-only torch "
-                                     f"build {torch.__version__}, or no GPU/driver); use --device cpu")
     torch.manual_seed(options.seed)
     generator = torch.Generator(device=device).manual_seed(options.seed)
     # On CPU one generator serves both; on a GPU the per-batch scale comes from its own CPU generator.

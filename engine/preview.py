@@ -22,13 +22,14 @@ from typing import TYPE_CHECKING, Any, Optional, Sequence
 
 import numpy as np
 
-from bcf.core import containers, gl, material
+from bcf.core import TEXTURES, MaterialSource, load_material, read_dds
+from bcf.engine import gl
 
 if TYPE_CHECKING:
-    from bcf.core import export
+    from bcf.core import Manifest
 
-# `export` and `report` import torch (about 1.5 s): they are imported where a preview is rendered, so the CLI
-# can read this module's defaults for `bcf --help` without loading torch.
+# Reading an export imports torch (about 1.5 s): it is imported where a preview is rendered, so the CLI can read
+# this module's defaults for `bcf --help` without loading torch.
 
 __all__ = ["BACKGROUND", "DEFAULT_LIGHT", "MAX_SIZE", "MIN_SIZE", "PreviewImages", "panel_boxes", "panel_titles",
            "render_preview", "source_mismatches", "write_preview"]
@@ -222,7 +223,7 @@ def _linear_to_srgb(c: np.ndarray) -> np.ndarray:
     return np.where(c <= 0.0031308, c * 12.92, 1.055 * np.power(c, 1.0 / 2.4) - 0.055)
 
 
-def source_mismatches(manifest: "export.Manifest", source: material.MaterialSource) -> list[str]:
+def source_mismatches(manifest: "Manifest", source: MaterialSource) -> list[str]:
     """Differences between the files a material was compressed from and the files given as its source: the
     preview still renders (the user may compare on purpose), but the comparison is then not like for like."""
     compressed = {f.role: f for f in manifest.material.files}
@@ -267,13 +268,13 @@ def _render_sphere(context: gl.HeadlessGL, lookup: str, textures: dict[str, Any]
 
 
 def _psnr_from_report(folder: Path, notes: list[str]) -> Optional[float]:
-    from bcf.core import report
+    from bcf.core import REPORT_FILE, ReportError, read_report
 
-    if not (folder / report.REPORT_FILE).is_file():
+    if not (folder / REPORT_FILE).is_file():
         return None
     try:
-        return float(report.read_report(folder).aggregate.psnr.all)
-    except report.ReportError as exc:  # a preview does not need the scores: say so and go on
+        return float(read_report(folder).aggregate.psnr.all)
+    except ReportError as exc:  # a preview does not need the scores: say so and go on
         notes.append(f"no PSNR in the title: {exc}")
         return None
 
@@ -281,29 +282,29 @@ def _psnr_from_report(folder: Path, notes: list[str]) -> Optional[float]:
 def render_preview(folder: Path, source: Optional[Path] = None, size: int = 512,
                    light: tuple[float, float] = DEFAULT_LIGHT) -> PreviewImages:
     """Render the compressed material of the export folder `folder` on a lit sphere (and, with `source`, the
-    material folder it came from, the same way). Raises export.ExportError for a bad folder,
-    material.MaterialError for a bad source, gl.GLUnavailable without headless OpenGL, ValueError for a size
+    material folder it came from, the same way). Raises ExportError for a bad folder,
+    MaterialError for a bad source, gl.GLUnavailable without headless OpenGL, ValueError for a size
     outside [MIN_SIZE, MAX_SIZE]."""
-    from bcf.core import export
-    from bcf.core.shader import shader_source
+    from bcf.core import read_manifest
+    from bcf.engine.shader import shader_source
 
     if not MIN_SIZE <= size <= MAX_SIZE:
         raise ValueError(f"size must be in [{MIN_SIZE}, {MAX_SIZE}], got {size}")
     folder = Path(folder)
     decoder_glsl = shader_source(folder, "glsl")  # reads and checks every file of the folder (SHA-256 included)
-    manifest = export.read_manifest(folder)
+    manifest = read_manifest(folder)
     notes: list[str] = []
     psnr_all = _psnr_from_report(folder, notes)
     texture_set = None
     if source is not None:
-        texture_set = material.load_material(Path(source))
+        texture_set = load_material(Path(source))
         # Only how the source differs from what was compressed: its discovery notes (which name 'bcf compress'
         # options) were shown when it was compressed.
         notes += source_mismatches(manifest, texture_set.source)
     compressed = sum(t.bytes for t in manifest.feature_textures) + manifest.decoder.bytes
 
     with gl.HeadlessGL() as context:
-        features = {f"bcf_T{i}": context.bc6h_texture(containers.read_dds(folder / t.file), manifest.address)
+        features = {f"bcf_T{i}": context.bc6h_texture(read_dds(folder / t.file), manifest.address)
                     for i, t in enumerate(manifest.feature_textures)}
         decoded = _render_sphere(context, decoder_glsl, features, size, light,
                                  manifest.material.normal_convention, manifest.address)
@@ -313,9 +314,9 @@ def render_preview(folder: Path, source: Optional[Path] = None, size: int = 512,
             # are box-filtered too); row 0 at t = 0 like the BC6H uploads, so both panels map alike.
             c = texture_set.channels
             textures = {name: context.float_texture(c[..., channels], manifest.address)
-                        for name, channels in (("src_albedo", material.TEXTURES["albedo"]),
-                                               ("src_normal", material.TEXTURES["normal"]),
-                                               ("src_arm", material.TEXTURES["arm"]))}
+                        for name, channels in (("src_albedo", TEXTURES["albedo"]),
+                                               ("src_normal", TEXTURES["normal"]),
+                                               ("src_arm", TEXTURES["arm"]))}
             original = _render_sphere(context, _SOURCE_LOOKUP, textures, size, light,
                                       texture_set.source.normal_convention, manifest.address)
         renderer = context.renderer

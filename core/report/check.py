@@ -8,14 +8,15 @@ over the same mips; anything else is a `CheckError`, never a pass.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from bcf.core.report import Report, TextureScores
+from bcf.core.errors import InputError
+from bcf.core.report.report_json import Report, TextureScores
 
 __all__ = ["CheckError", "CheckRow", "compare_reports", "format_check"]
 
 TEXTURE_NAMES = tuple(TextureScores.model_fields)  # albedo, normal, arm, all
 
 
-class CheckError(ValueError):
+class CheckError(InputError):
     """Reports that cannot be compared (malformed, other material, other preset, other mips)."""
 
 

@@ -17,15 +17,16 @@ import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, ValidationError
 
-from bcf import __version__
-from bcf.core import bc6h, containers
-from bcf.core.material import MaterialSource
-from bcf.core.model import (FEATURE_CHANNELS, BlockFeatures, Decoder, FeatureTextureSpec, NeuralMaterial,
+from bcf.core.errors import InputError
+from bcf.core.version import GENERATOR
+from bcf.core.codec import containers
+from bcf.core.material.texture_set import MaterialSource
+from bcf.core.fit.model import (FEATURE_CHANNELS, BlockFeatures, Decoder, FeatureTextureSpec, NeuralMaterial,
                             StaticFeatures)
 from bcf.core.options import ResolvedOptions
 
-__all__ = ["DECODER_FILE", "MANIFEST_FILE", "ExportError", "ExportedMaterial", "Manifest", "feature_file",
-           "load_export", "write_export"]
+__all__ = ["DECODER_FILE", "MANIFEST_FILE", "ExportError", "Manifest", "feature_file", "read_manifest",
+           "sha256_hex", "write_export"]
 
 FORMAT_NAME = "bcf-neural-material"
 FORMAT_VERSION = 1
@@ -37,7 +38,7 @@ def feature_file(index: int) -> str:
     return f"features_{index}.dds"
 
 
-class ExportError(ValueError):
+class ExportError(InputError):
     """An export folder that is incomplete, inconsistent or corrupt; the message names the file."""
 
 
@@ -96,7 +97,7 @@ class Manifest(_Strict):
     options: ResolvedOptions
 
 
-def _sha256(data: bytes) -> str:
+def sha256_hex(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 
 
@@ -140,32 +141,20 @@ def write_export(directory: Path, model: NeuralMaterial, source: MaterialSource,
         textures.append(FeatureTextureEntry(
             file=path.name, width=spec.width, height=spec.height, mips=spec.levels, lod_bias=spec.lod_bias,
             mlp_inputs=list(range(FEATURE_CHANNELS * i, FEATURE_CHANNELS * (i + 1))),
-            bytes=sum(level.nbytes for level in levels), sha256=_sha256(path.read_bytes())))
+            bytes=sum(level.nbytes for level in levels), sha256=sha256_hex(path.read_bytes())))
     data, layers = _decoder_bytes(model.decoder)
     (directory / DECODER_FILE).write_bytes(data)
     manifest = Manifest(
-        generator=f"bcf {__version__}", material=source, width=source.width, height=source.height, mips=mips,
+        generator=GENERATOR, material=source, width=source.width, height=source.height, mips=mips,
         address=model.address, feature_textures=textures,
-        decoder=DecoderEntry(layers=layers, bytes=len(data), sha256=_sha256(data)),
+        decoder=DecoderEntry(layers=layers, bytes=len(data), sha256=sha256_hex(data)),
         outputs=_outputs(source), options=options)
     (directory / MANIFEST_FILE).write_text(manifest.model_dump_json(indent=2) + "\n")
     return manifest
 
 
-# ------------------------------------------------------------------------------------------------- read
-
-
-class ExportedMaterial:
-    """An export folder read back: its manifest and the model that decodes it (fp16 weights evaluated in
-    float32, BC6H textures decoded bit-exactly), built from the files alone."""
-
-    def __init__(self, manifest: Manifest, model: NeuralMaterial, directory: Path):
-        self.manifest = manifest
-        self.model = model
-        self.directory = directory
-
-
 def read_manifest(directory: Path) -> Manifest:
+    """manifest.json of an export folder; ExportError for a folder that is not one."""
     path = Path(directory) / MANIFEST_FILE
     if not Path(directory).is_dir():
         raise ExportError(f"{directory}: not a directory")
@@ -179,60 +168,3 @@ def read_manifest(directory: Path) -> Manifest:
         first = exc.errors()[0]
         where = ".".join(str(p) for p in first["loc"])
         raise ExportError(f"{path}: not a bcf manifest ({where}: {first['msg']})") from None
-
-
-def _read_checked(path: Path, sha256: str) -> bytes:
-    if not path.is_file():
-        raise ExportError(f"{path}: missing")
-    data = path.read_bytes()
-    if _sha256(data) != sha256:
-        raise ExportError(f"{path}: contents do not match the manifest's sha256 (modified or corrupt)")
-    return data
-
-
-def _read_feature_texture(directory: Path, entry: FeatureTextureEntry) -> list[torch.Tensor]:
-    path = directory / entry.file
-    _read_checked(path, entry.sha256)
-    try:
-        texture = containers.read_dds(path)
-    except containers.ContainerError as exc:
-        raise ExportError(str(exc)) from None
-    found = (texture.width, texture.height, len(texture.levels), texture.signed)
-    if found != (entry.width, entry.height, entry.mips, False):
-        raise ExportError(f"{path}: {texture.width}x{texture.height}, {len(texture.levels)} mips, "
-                          f"{'SF16' if texture.signed else 'UF16'}; the manifest says {entry.width}x"
-                          f"{entry.height}, {entry.mips} mips, UF16")
-    levels = []
-    for number, blocks in enumerate(texture.levels):
-        w, h = containers.mip_size(texture.width, texture.height, number)
-        image = bc6h.decode_image(blocks, w, h, signed=False).astype(np.float32)
-        levels.append(torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1))))
-    return levels
-
-
-def _read_decoder(directory: Path, entry: DecoderEntry) -> Decoder:
-    data = _read_checked(directory / entry.file, entry.sha256)
-    values = np.frombuffer(data, dtype="<f2")
-    layers = []
-    for layer in entry.layers:
-        end = layer.bias_offset + layer.outputs
-        if end > values.size:
-            raise ExportError(f"{directory / entry.file}: {values.size} fp16 values, the manifest's layers need {end}")
-        w = values[layer.weight_offset:layer.weight_offset + layer.inputs * layer.outputs]
-        b = values[layer.bias_offset:end]
-        layers.append((torch.from_numpy(w.astype(np.float32).reshape(layer.outputs, layer.inputs)),
-                       torch.from_numpy(b.astype(np.float32))))
-    if len(layers) != 2 or [l.activation for l in entry.layers] != ["relu", "identity"]:
-        raise ExportError(f"{directory / MANIFEST_FILE}: expected two layers (relu, identity)")
-    return Decoder.from_layers(layers)
-
-
-def load_export(directory: Path) -> ExportedMaterial:
-    """Read an export folder into a model; raises ExportError naming the first bad file."""
-    directory = Path(directory)
-    manifest = read_manifest(directory)
-    specs = tuple(FeatureTextureSpec(t.width, t.height, t.mips, t.lod_bias) for t in manifest.feature_textures)
-    levels = [_read_feature_texture(directory, t) for t in manifest.feature_textures]
-    decoder = _read_decoder(directory, manifest.decoder)
-    model = NeuralMaterial(StaticFeatures(specs, levels), decoder, manifest.address)
-    return ExportedMaterial(manifest, model.eval(), directory)

@@ -12,8 +12,10 @@ from typing import Optional
 
 from pydantic import BaseModel, ConfigDict, ValidationError
 
-from bcf.core.material import MaterialSource
-from bcf.core.metrics import MipScores, psnr_from_mse
+from bcf.core.errors import InputError
+from bcf.core.material.texture_set import MaterialSource
+from bcf.core.report.metrics import MipScores
+from bcf.core.psnr import psnr_from_mse
 from bcf.core.options import ResolvedOptions
 
 __all__ = ["REPORT_FILE", "Aggregate", "BaselineReport", "Evaluation", "MipMetrics", "Report", "ReportError",
@@ -23,7 +25,7 @@ __all__ = ["REPORT_FILE", "Aggregate", "BaselineReport", "Evaluation", "MipMetri
 REPORT_FILE = "report.json"
 
 
-class ReportError(ValueError):
+class ReportError(InputError):
     """A report.json that is missing or is not a bcf report; the message names the file."""
 
 

@@ -1,34 +1,43 @@
-"""The public pipeline: a texture set in, an export folder with report.json out; and decoding an export
-folder back to texture images. The CLI, the job queue and the HTTP service call these two functions.
+"""The pipeline: a texture set in, an export folder with report.json out, strung through the layers below.
 
-    TextureSet -> training.fit -> export.write_export -> export.load_export -> metrics.evaluate -> Report
+    TextureSet -> fit.training.fit -> export.artifacts.write_export -> export.decode.load_export
+               -> report.metrics.evaluate -> report.json / report.html
+
+`result_identity` and `is_current` say whether an earlier result already answers a request (same input
+contents, convention, size and options): the job queue, `bcf batch` and `bcf bench` all ask it here.
 """
 
 from __future__ import annotations
 
 import datetime
+import hashlib
+import json
 import os
 import shutil
-import tempfile
 import time
 from pathlib import Path
-from typing import Callable, Literal, Optional, Sequence
+from typing import Callable, Mapping, Optional, Sequence
 
 import torch
+from pydantic import BaseModel, ConfigDict
 
-from bcf import __version__
-from bcf.core import baselines as baseline_codecs
-from bcf.core import export, html_report, images, metrics, report
-from bcf.core import material as material_io
-from bcf.core.material import TextureSet
-from bcf.core.options import CompressOptions, ResolvedOptions, resolve_options
-from bcf.core.sampling import ReferenceMaterial, material_mip_count
-from bcf.core.training import FitResult, ProgressCallback, StopCallback, fit
+from bcf.core.errors import InputError
+from bcf.core.export.artifacts import write_export
+from bcf.core.export.decode import DecoderFunction, load_export, render_region
+from bcf.core.files import replace_folder, staging_folder, write_text_atomic
+from bcf.core.fit.sampling import ReferenceMaterial, material_mip_count
+from bcf.core.fit.training import FitResult, ProgressCallback, StopCallback, fit
+from bcf.core.material.texture_set import TextureSet
+from bcf.core.options import BASELINES, CompressOptions, ResolvedOptions, resolve_options
+from bcf.core.report import baselines as baseline_codecs
+from bcf.core.report import html as html_report
+from bcf.core.report import metrics
+from bcf.core.report import report_json as report
+from bcf.core.version import GENERATOR
 
-__all__ = ["BASELINES_FOLDER", "OutputExistsError", "compress_material", "decode_export", "decoded_file_names",
-           "replace_folder"]
+__all__ = ["BASELINES_FOLDER", "OutputExistsError", "ResultIdentity", "check_output", "compress_material",
+           "is_current", "result_identity"]
 
-REPORT_FILE = report.REPORT_FILE
 BASELINES_FOLDER = "baselines"  # OUT/baselines/<name>/: the baseline codecs' texture files
 JITTER_SEED = 12345  # fixed, so reports of the same export are identical
 CROP_TEXELS = (128, 64)  # sides of the report.html crops at mip 0 and at the middle mip
@@ -38,34 +47,64 @@ CROP_BASELINES = ("bc1_bc5_full", "bc1_bc5_half", "astc_12x12_full", "astc_8x8_f
 NoteCallback = Callable[[str], None]
 
 
-class OutputExistsError(ValueError):
+class OutputExistsError(InputError):
     """The output folder exists and is not empty (and overwriting was not asked for)."""
 
 
 def check_output(output: Path, overwrite: bool) -> None:
     """Refuse early (before any training) to replace a non-empty folder unless `overwrite`."""
     if output.exists() and not output.is_dir():
-        raise OutputExistsError(f"{output}: exists and is not a folder")
+        raise OutputExistsError("exists and is not a folder", file=output)
     if output.is_dir() and any(output.iterdir()) and not overwrite:
-        raise OutputExistsError(f"{output}: folder exists and is not empty (use --force to replace it)")
+        raise OutputExistsError("folder exists and is not empty", file=output, fix="use {} to replace it",
+                                options=["force"])
 
 
-def replace_folder(staged: Path, output: Path) -> None:
-    """Move the finished `staged` folder to `output`, replacing it; `output` is never half-written."""
-    if output.exists():
-        old = output.with_name(f".{output.name}.old-{os.getpid()}")
-        output.rename(old)
-        staged.rename(output)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        staged.rename(output)
+# --------------------------------------------------------------------------------------- is it current?
+
+
+class ResultIdentity(BaseModel):
+    """What decides a result: the inputs' contents by role, the normal convention and size they were read with,
+    and the resolved options. The device is left out (any device gives an equivalent result)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    files: dict[str, str]  # role -> SHA-256 of the file's bytes
+    normal_convention: str
+    size: tuple[int, int]  # (width, height) as compressed (a benchmark may box-filter the files down first)
+    options: dict  # ResolvedOptions without the device
+
+    def key(self) -> str:
+        """A content hash of the identity: equal keys are the same result."""
+        return hashlib.sha256(json.dumps(self.model_dump(mode="json"), sort_keys=True).encode()).hexdigest()
+
+
+def result_identity(files: Mapping[str, str], normal_convention: str, size: tuple[int, int],
+                    options: CompressOptions | ResolvedOptions) -> ResultIdentity:
+    """The identity of compressing files with these SHA-256 per role, convention and size, with `options`."""
+    resolved = options if isinstance(options, ResolvedOptions) else resolve_options(options)
+    return ResultIdentity(files=dict(sorted(files.items())), normal_convention=normal_convention, size=size,
+                          options=resolved.model_dump(exclude={"device"}))
+
+
+def _report_identity(rep: report.Report) -> ResultIdentity:
+    return result_identity({f.role: f.sha256 for f in rep.material.files}, rep.material.normal_convention,
+                           (rep.material.width, rep.material.height), rep.options)
+
+
+def is_current(rep: report.Report, wanted: ResultIdentity, baselines: Sequence[str] = ()) -> bool:
+    """Does the earlier result `rep` answer a request with identity `wanted` and (at least) these baselines?"""
+    return _report_identity(rep) == wanted and set(baselines) <= set(rep.baselines)
+
+
+# ------------------------------------------------------------------------------------------- compress
 
 
 def _mip_sizes(reference: ReferenceMaterial) -> list[tuple[int, int]]:
     return [(m.shape[2], m.shape[1]) for m in reference.mips]
 
 
-def _evaluate(decoder: metrics.Decoder, reference: ReferenceMaterial,
+def _evaluate(decoder: DecoderFunction, reference: ReferenceMaterial,
               jitter_seed: Optional[int] = None) -> report.Evaluation:
     return report.summarise(metrics.evaluate(decoder, reference, jitter_seed), _mip_sizes(reference))
 
@@ -79,14 +118,14 @@ def compress_material(material: TextureSet, options: CompressOptions | ResolvedO
                       overwrite: bool = False, baselines: Sequence[str] = (),
                       note: Optional[NoteCallback] = None) -> report.Report:
     """Fit, export to `output` (features_*.dds, decoder.bin, manifest.json, report.json, report.html) and
-    evaluate the exported files. `baselines` (names from `baselines.BASELINES`) are encoded, scored the same
+    evaluate the exported files. `baselines` (names from `options.BASELINES`) are encoded, scored the same
     way into `report.baselines` and written under output/baselines/<name>/; `note` receives a line per stage
     after training. Work happens in a hidden sibling folder that replaces `output` only when complete, so an
     error or a stop (training.TrainingStopped, KeyboardInterrupt) leaves `output` as it was."""
     started = time.perf_counter()
-    unknown = [name for name in baselines if name not in baseline_codecs.BASELINES]
+    unknown = [name for name in baselines if name not in BASELINES]
     if unknown:
-        raise ValueError(f"unknown baselines {unknown}; known: {', '.join(baseline_codecs.BASELINES)}")
+        raise ValueError(f"unknown baselines {unknown}; known: {', '.join(BASELINES)}")
     say = note or (lambda message: None)
     resolved = options if isinstance(options, ResolvedOptions) else resolve_options(options)
     output = Path(output)
@@ -94,16 +133,16 @@ def compress_material(material: TextureSet, options: CompressOptions | ResolvedO
     output.parent.mkdir(parents=True, exist_ok=True)
     result = fit(material, resolved, progress, should_stop)
 
-    staged = Path(tempfile.mkdtemp(prefix=f".{output.name}.partial-", dir=output.parent))
+    staged = staging_folder(output)
     try:
         t0 = time.perf_counter()
         mips = material_mip_count(material.width, material.height)
-        export.write_export(staged, result.model, material.source, mips, resolved)
+        write_export(staged, result.model, material.source, mips, resolved)
         export_s = time.perf_counter() - t0
 
         say("evaluating the exported files")
         t0 = time.perf_counter()
-        exported = export.load_export(staged)
+        exported = load_export(staged)
         reference = ReferenceMaterial(material.channels, resolved.address)
         model_cpu = result.model.to("cpu").eval()
         on_files = _evaluate(exported.model, reference)
@@ -117,14 +156,14 @@ def compress_material(material: TextureSet, options: CompressOptions | ResolvedO
         manifest = exported.manifest
         features_bytes = sum(t.bytes for t in manifest.feature_textures)
         total = features_bytes + manifest.decoder.bytes
-        decoders: dict[str, metrics.Decoder] = {"ours": exported.model}
+        decoders: dict[str, DecoderFunction] = {"ours": exported.model}
         baseline_reports = {}
         for name in baselines:
             say(f"baseline {name}: encoding and scoring")
             baseline_reports[name], decoders[name] = _run_baseline(name, material, reference, result, total,
                                                                    staged / BASELINES_FOLDER / name)
         rep = report.Report(
-            generator=f"bcf {__version__}",
+            generator=GENERATOR,
             created_at=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
             device=_device_name(resolved.device), material=material.source, options=resolved,
             aggregate=on_files.aggregate, per_mip=on_files.per_mip, jittered=jittered, models=models,
@@ -142,10 +181,10 @@ def compress_material(material: TextureSet, options: CompressOptions | ResolvedO
         rep.timing.total_s = time.perf_counter() - started
         html_report.write_html_report(staged / html_report.HTML_REPORT_FILE, rep, crops)
         # files_bytes counts report.json itself: write once to measure, then with the final number.
-        (staged / REPORT_FILE).write_text(rep.model_dump_json(indent=2) + "\n")
+        (staged / report.REPORT_FILE).write_text(rep.model_dump_json(indent=2) + "\n")
         while rep.size.files_bytes != _folder_bytes(staged):  # settles in 1-2 rounds (digit count changes)
             rep.size.files_bytes = _folder_bytes(staged)
-            (staged / REPORT_FILE).write_text(rep.model_dump_json(indent=2) + "\n")
+            (staged / report.REPORT_FILE).write_text(rep.model_dump_json(indent=2) + "\n")
         replace_folder(staged, output)
     except BaseException:
         shutil.rmtree(staged, ignore_errors=True)
@@ -154,7 +193,7 @@ def compress_material(material: TextureSet, options: CompressOptions | ResolvedO
 
 
 def _run_baseline(name: str, material: TextureSet, reference: ReferenceMaterial, result: FitResult,
-                  our_bytes: int, folder: Path) -> tuple[report.BaselineReport, metrics.Decoder]:
+                  our_bytes: int, folder: Path) -> tuple[report.BaselineReport, DecoderFunction]:
     """One baseline's scores and decoder; naive_bc6 is the fit's transition snapshot, the same size as ours."""
     if name != "naive_bc6":
         return baseline_codecs.run_codec_baseline(name, material.channels, reference, folder)
@@ -181,7 +220,7 @@ def _detail_window(mip: torch.Tensor, size: int) -> tuple[int, int]:
     return where
 
 
-def _crops(reference: ReferenceMaterial, decoders: dict[str, metrics.Decoder]) -> list[html_report.Crop]:
+def _crops(reference: ReferenceMaterial, decoders: dict[str, DecoderFunction]) -> list[html_report.Crop]:
     """Crops of mip 0 and the middle mip for report.html: reference and every decoder at the texel centres."""
     crops = []
     for level, side in zip((0, reference.levels // 2), CROP_TEXELS):
@@ -189,7 +228,7 @@ def _crops(reference: ReferenceMaterial, decoders: dict[str, metrics.Decoder]) -
         _, h, w = mip.shape
         size = min(side, w, h)
         x, y = _detail_window(mip, size)
-        methods = {name: metrics.render_region(decoder, w, h, float(level), x, y, size).clamp(0.0, 1.0)
+        methods = {name: render_region(decoder, w, h, float(level), x, y, size).clamp(0.0, 1.0)
                    .permute(1, 2, 0).numpy() for name, decoder in decoders.items()}
         crops.append(html_report.Crop(mip=level, x=x, y=y, size=size,
                                       reference=mip[:, y:y + size, x:x + size].permute(1, 2, 0).numpy(),
@@ -201,37 +240,3 @@ def _device_name(device: str) -> str:
     if device == "cuda":
         return f"cuda ({torch.cuda.get_device_name()})"
     return f"cpu ({os.cpu_count()} cores, {torch.get_num_threads()} torch threads)"
-
-
-# ------------------------------------------------------------------------------------------------ decode
-
-
-def decoded_file_names(mip: int, extension: str) -> dict[str, str]:
-    """Names `decode_export` writes for one mip: albedo.png, ... for mip 0; albedo_mip<N>.png, ... else."""
-    suffix = "" if mip == 0 else f"_mip{mip}"
-    return {name: f"{name}{suffix}{extension}" for name in ("albedo", "normal", "arm")}
-
-
-def decode_export(folder: Path, output: Path, mips: Sequence[int], extension: Literal[".png", ".exr"] = ".png",
-                  png_bits: Literal[8, 16] = 8,
-                  on_file: Optional[Callable[[Path], None]] = None) -> list[Path]:
-    """The reference decoder: reconstruct albedo / normal / ARM images of the given mips of an export
-    folder from its files alone, evaluating at each texel centre of the material mip (scale s = mip).
-    Returns the written paths."""
-    exported = export.load_export(folder)
-    manifest = exported.manifest
-    for mip in mips:
-        if not 0 <= mip < manifest.mips:
-            raise export.ExportError(f"{folder}: mip {mip} does not exist; the material has mips 0..{manifest.mips - 1}")
-    output.mkdir(parents=True, exist_ok=True)
-    written = []
-    for mip in mips:
-        w, h = max(1, manifest.width >> mip), max(1, manifest.height >> mip)
-        channels = metrics.render_mip(exported.model, w, h, float(mip)).permute(1, 2, 0).numpy()
-        for name, image in material_io.material_images(channels).items():
-            path = output / decoded_file_names(mip, extension)[name]
-            images.write_rgb(path, image, png_bits)
-            written.append(path)
-            if on_file is not None:
-                on_file(path)
-    return written

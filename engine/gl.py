@@ -15,7 +15,7 @@ from typing import Any, Literal, Optional, Sequence
 
 import numpy as np
 
-from bcf.core.containers import BC6HTexture
+from bcf.core import BC6HTexture
 
 __all__ = ["BPTC_EXTENSION", "GLUnavailable", "HeadlessGL"]
 

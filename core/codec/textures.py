@@ -17,8 +17,11 @@ from typing import Callable, Optional, Sequence, Union
 
 import numpy as np
 
-from bcf.core import bc6h, containers
-from bcf.core.containers import BC6HTexture
+from bcf.core.codec import containers
+from bcf.core.codec.containers import BC6HTexture
+from bcf.core.psnr import psnr_from_mse
+from bcf.core.codec import bc6h
+from bcf.core.codec import partition
 
 __all__ = [
     "HALF_MAX",
@@ -35,7 +38,7 @@ __all__ = [
 
 StrPath = Union[str, PathLike]
 HALF_MAX = 65504.0  # largest finite half float: BC6H cannot store anything larger
-ENCODABLE_MODES = (10, 11)  # the explicit-endpoint modes `bc6h.encode_image` writes
+ENCODABLE_MODES = (10, 11)  # the explicit-endpoint modes `partition.encode_image` writes
 
 
 # ------------------------------------------------------------------------------------------ input range
@@ -71,7 +74,7 @@ def to_bc6h_range(image: np.ndarray, signed: bool) -> tuple[np.ndarray, list[str
 
 
 def regions_for_mode(mode: int) -> int:
-    """`bc6h.encode_image`'s regions argument for BC6H mode 10 (two regions) or 11 (one region)."""
+    """`partition.encode_image`'s regions argument for BC6H mode 10 (two regions) or 11 (one region)."""
     if mode not in ENCODABLE_MODES:
         raise ValueError(f"only BC6H modes 10 and 11 can be encoded, got {mode}")
     return 2 if mode == 10 else 1
@@ -88,7 +91,7 @@ def encode_mips(mips: Sequence[np.ndarray], mode: int, signed: bool,
     levels = []
     for i, level in enumerate(mips):
         start = time.perf_counter()
-        blocks = bc6h.encode_image(level, regions=regions, signed=signed)
+        blocks = partition.encode_image(level, regions=regions, signed=signed)
         if on_level is not None:
             on_level(i, blocks, time.perf_counter() - start)
         levels.append(blocks)
@@ -106,7 +109,7 @@ class LevelCheck:
     level: int
     width: int
     height: int
-    psnr_db: float  # inf when the decode is exact
+    psnr_db: float  # MAX_PSNR_DB when the decode is exact
     max_abs_error: float
 
 
@@ -114,7 +117,7 @@ def psnr(reference: np.ndarray, decoded: np.ndarray) -> float:
     """PSNR in dB of `decoded` against `reference` (same shape), peak = max(1, max of reference).
 
     A peak of at least 1 keeps LDR images on the usual [0, 1] scale while HDR images are judged against
-    their own brightest value. Returns inf for identical arrays.
+    their own brightest value. Identical arrays score `MAX_PSNR_DB`.
     """
     reference = np.asarray(reference, dtype=np.float64)
     decoded = np.asarray(decoded, dtype=np.float64)
@@ -122,7 +125,7 @@ def psnr(reference: np.ndarray, decoded: np.ndarray) -> float:
         raise ValueError(f"psnr needs equal shapes, got {reference.shape} and {decoded.shape}")
     mse = float(np.mean((decoded - reference) ** 2))
     peak = max(1.0, float(reference.max()))
-    return math.inf if mse == 0.0 else 10.0 * math.log10(peak * peak / mse)
+    return psnr_from_mse(mse, peak)
 
 
 def verify_texture(texture: BC6HTexture, sources: Sequence[np.ndarray]) -> list[LevelCheck]:

@@ -1,0 +1,242 @@
+"""Texture-set loading: the files of a `MaterialFiles` -> a validated, normalised (H, W, 8) float32 array.
+
+Checks, in order, all before decoding any pixels except the last two: completeness, readable headers, channel
+counts per role, equal sizes, power-of-two sizes >= 64, then decoding (truncated or corrupt data is an error)
+and clipping of values outside [0, 1] with a note. Every problem raises `MaterialError` naming the file.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import OpenImageIO as oiio
+import pydantic
+
+from bcf.core.files import file_sha256
+from bcf.core.material.images import ImageReadError, read_image
+from bcf.core.material.naming import check_complete, resolve_material
+from bcf.core.material.roles import (CHANNEL_OF, CHANNELS, DEFAULTS, MIN_SIZE, PACKED_ROLES, TEXTURES,
+                                     MaterialError, MaterialFiles, NormalConvention, Role)
+
+class SourceFile(pydantic.BaseModel):
+    """One input file as the manifest records it."""
+
+    model_config = pydantic.ConfigDict(extra="forbid")
+
+    role: Role
+    name: str  # file name only, no folder: the manifest must not leak local paths
+    sha256: str  # of the file's bytes
+    channels: int
+    width: int
+    height: int
+    format: str  # OpenImageIO format name: "png", "jpeg", "openexr", "targa", "tiff"
+    bits: str  # OpenImageIO pixel type: "uint8", "uint16", "half", "float", ...
+
+
+class MaterialSource(pydantic.BaseModel):
+    """Description of the input texture set, stored in the compressed output's manifest."""
+
+    model_config = pydantic.ConfigDict(extra="forbid")
+
+    name: str  # folder name, or the albedo file's stem when there is no folder
+    width: int
+    height: int
+    normal_convention: NormalConvention
+    arm_packed: bool
+    files: list[SourceFile]
+    defaults: dict[str, float]  # roles filled with constants, e.g. {"ao": 1.0} or {"metalness": 0.0}
+
+
+@dataclass(frozen=True)
+class TextureSet:
+    """A loaded material.
+
+    channels: (H, W, 8) float32 in [0, 1], in `CHANNELS` order, values as stored (see the module docstring).
+    notes: non-fatal observations for the user (discovery choices first, then loading ones).
+    """
+
+    channels: np.ndarray
+    source: MaterialSource
+    notes: tuple[str, ...]
+
+    @property
+    def width(self) -> int:
+        return int(self.channels.shape[1])
+
+    @property
+    def height(self) -> int:
+        return int(self.channels.shape[0])
+
+
+# -------------------------------------------------------------------------------------------- loading
+
+
+@dataclass(frozen=True)
+class _Header:
+    """What OpenImageIO says about a file without decoding its pixels."""
+
+    width: int
+    height: int
+    channels: int
+    format: str
+    bits: str
+
+
+def _read_header(path: Path) -> _Header:
+    """Open `path` and read its header only, so size and channel problems surface before any decoding."""
+    if not path.is_file():
+        raise MaterialError("no such file", file=path)
+    image_input = oiio.ImageInput.open(str(path))
+    if image_input is None:
+        problem = _one_line(oiio.geterror()) or "unknown OpenImageIO error"
+        raise MaterialError(f"cannot read image: {problem}", file=path)
+    try:
+        spec = image_input.spec()
+        return _Header(spec.width, spec.height, spec.nchannels, image_input.format_name(), str(spec.format))
+    finally:
+        image_input.close()
+
+
+def _check_channels(role: Role, path: Path, channels: int) -> None:
+    """Raise MaterialError if a `role` file with `channels` channels cannot be used."""
+    if role == "albedo" and channels < 3:
+        raise MaterialError(f"albedo needs 3 channels (RGB), found {channels}", file=path, role=role)
+    if role == "normal" and channels < 2:
+        raise MaterialError(f"normal needs 2 or 3 channels (XY or XYZ), found {channels}", file=path, role=role)
+    if role == "arm" and channels < 3:
+        raise MaterialError(f"arm needs 3 channels (R = AO, G = roughness, B = metalness), found {channels}",
+                            file=path, role=role)
+    if role in PACKED_ROLES and channels == 2:
+        raise MaterialError(f"{role} needs 1 channel (grey) or 3 (RGB, R is used), found {channels}", file=path,
+                            role=role)
+
+
+def _check_sizes(headers: dict[Role, tuple[Path, _Header]]) -> tuple[int, int]:
+    """The common (width, height) of all files; MaterialError if they differ or it is not usable."""
+    sizes = {(h.width, h.height) for _, h in headers.values()}
+    if len(sizes) > 1:
+        listing = ", ".join(f"{path.name} {h.width}x{h.height}" for path, h in headers.values())
+        first = next(iter(headers.values()))[1]
+        odd = next(path for path, h in headers.values() if (h.width, h.height) != (first.width, first.height))
+        raise MaterialError(f"the files differ in size: {listing}; all must be the same size", file=odd)
+    width, height = sizes.pop()
+    if not (_usable_side(width) and _usable_side(height)):
+        path = headers["albedo"][0] if "albedo" in headers else next(iter(headers.values()))[0]
+        raise MaterialError(f"size {width}x{height} is not supported: width and height must each be a power of two "
+                            f"and at least {MIN_SIZE}", file=path)
+    return width, height
+
+
+def _usable_side(n: int) -> bool:
+    return n >= MIN_SIZE and n & (n - 1) == 0
+
+
+def _read_pixels(path: Path) -> np.ndarray:
+    """(h, w, c) float32 of `path`, every stored channel; MaterialError naming the file on any read problem."""
+    try:
+        return read_image(path)
+    except ImageReadError as exc:
+        raise MaterialError(_one_line(exc.reason), file=path) from None
+
+
+def _one_line(text: str) -> str:
+    """OpenImageIO's messages can span lines (one per library layer); MaterialError promises one line."""
+    return "; ".join(line.strip() for line in text.splitlines() if line.strip())
+
+
+def _used_channels(role: Role, path: Path, pixels: np.ndarray, notes: list[str]) -> np.ndarray:
+    """The channels of a `role` file that go into the material: (h, w, k) with k = 3, 2, 3 or 1 for albedo,
+    normal, arm and a single map. Adds a note for what is dropped when it may matter."""
+    channels = pixels.shape[2]
+    if role == "albedo":
+        if channels > 3:
+            notes.append(f"{path.name}: albedo alpha channel ignored")
+        return pixels[..., :3]
+    if role == "normal":
+        return pixels[..., :2]  # z is implied by x and y of a unit normal
+    if role == "arm":
+        if channels > 3:
+            notes.append(f"{path.name}: ARM channel 4 (alpha) ignored")
+        return pixels[..., :3]
+    if channels >= 3:
+        # Grey maps are often saved as RGB; only warn if it is not actually grey (beyond rounding).
+        spread = float(np.max(np.ptp(pixels[..., :3], axis=2)))
+        if spread > 1.5 / 255:
+            notes.append(f"{path.name}: {role} stored as RGB with differing channels (up to {spread:.3f} apart); "
+                         f"using channel 0 (R)")
+    return pixels[..., :1]
+
+
+def _clip(path: Path, values: np.ndarray, notes: list[str]) -> np.ndarray:
+    """`values` limited to [0, 1] (float formats may hold anything, signed integers read as [-1, 1]), with a
+    note counting the values changed; NaN has no sensible replacement and is an error."""
+    if np.isnan(values).any():
+        raise MaterialError(f"{int(np.isnan(values).sum())} values are NaN", file=path)
+    outside = int(np.count_nonzero((values < 0.0) | (values > 1.0)))
+    if outside:
+        notes.append(f"{path.name}: {outside} values outside [0, 1] clipped")
+        return np.clip(values, 0.0, 1.0)
+    return values
+
+
+def load_texture_set(files: MaterialFiles, name: str | None = None) -> TextureSet:
+    """Read and validate the files of `files` into a TextureSet.
+
+    `name` defaults to the albedo file's stem. Checks, in order (all before decoding any pixels except the
+    last two): completeness, readable headers, channel counts per role, equal sizes, power-of-two sizes
+    >= 64, then decodes (truncated or corrupt data is an error) and clips values outside [0, 1] with a note.
+    Missing AO becomes 1 and missing metalness 0 (recorded in `source.defaults`, with a note).
+    """
+    check_complete(files, None)
+    roles = files.roles()
+    headers: dict[Role, tuple[Path, _Header]] = {}
+    for role, path in roles.items():
+        header = _read_header(Path(path))
+        _check_channels(role, Path(path), header.channels)
+        headers[role] = (Path(path), header)
+    width, height = _check_sizes(headers)
+
+    notes: list[str] = list(files.notes)
+    channels = np.empty((height, width, len(CHANNELS)), dtype=np.float32)
+    for role, (path, header) in headers.items():
+        used = _used_channels(role, path, _read_pixels(path), notes)
+        if not header.bits.startswith("uint"):  # OIIO maps unsigned integers into [0, 1] already: skip the scan
+            used = _clip(path, used, notes)
+        target = TEXTURES[role] if role in TEXTURES else slice(CHANNEL_OF[role], CHANNEL_OF[role] + 1)
+        channels[..., target] = used
+
+    defaults: dict[str, float] = {}
+    if "arm" not in roles:
+        for role, value in DEFAULTS.items():
+            if role not in roles:
+                channels[..., CHANNEL_OF[role]] = value
+                defaults[role] = value
+                notes.append(f"no {role} map: using the constant {value:g}")
+
+    convention = files.normal_convention
+    if convention is None:
+        convention = "opengl"
+        notes.append(f"{roles['normal'].name}: normal map convention not known from its name; assuming OpenGL "
+                     f"(Y+); set the normal convention to directx if it is DirectX (Y-)")
+
+    source = MaterialSource(
+        name=name if name is not None else roles["albedo"].stem,
+        width=width,
+        height=height,
+        normal_convention=convention,
+        arm_packed="arm" in roles,
+        files=[SourceFile(role=role, name=path.name, sha256=file_sha256(path), channels=h.channels, width=h.width,
+                          height=h.height, format=h.format, bits=h.bits) for role, (path, h) in headers.items()],
+        defaults=defaults,
+    )
+    return TextureSet(channels=channels, source=source, notes=tuple(notes))
+
+
+def load_material(directory: Path | None, explicit: MaterialFiles | None = None) -> TextureSet:
+    """`resolve_material` then `load_texture_set`; the material is named after `directory` when given."""
+    files = resolve_material(None if directory is None else Path(directory), explicit or MaterialFiles())
+    return load_texture_set(files, name=None if directory is None else Path(directory).resolve().name)
+
+
