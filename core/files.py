@@ -35,9 +35,9 @@ def atomic_path(path: Path) -> Iterator[Path]:
 
 
 def write_text_atomic(path: Path, text: str) -> Path:
-    """Write `text` to `path` through `atomic_path`; returns `path`."""
+    """Write `text` (UTF-8) to `path` through `atomic_path`; returns `path`."""
     with atomic_path(Path(path)) as temporary:
-        temporary.write_text(text)
+        temporary.write_text(text, encoding="utf-8")
     return Path(path)
 
 

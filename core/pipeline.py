@@ -24,7 +24,7 @@ from pydantic import BaseModel, ConfigDict
 from bcf.core.errors import InputError
 from bcf.core.export.artifacts import write_export
 from bcf.core.export.decode import DecoderFunction, load_export, render_region
-from bcf.core.files import replace_folder, staging_folder, write_text_atomic
+from bcf.core.files import replace_folder, staging_folder
 from bcf.core.fit.sampling import ReferenceMaterial, material_mip_count
 from bcf.core.fit.training import FitResult, ProgressCallback, StopCallback, fit
 from bcf.core.material.texture_set import TextureSet

@@ -15,14 +15,13 @@ matplotlib's Agg backend. Images are returned upright (row 0 = top), sRGB-encode
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Optional, Sequence
 
 import numpy as np
 
-from bcf.core import TEXTURES, MaterialSource, load_material, read_dds
+from bcf.core import TEXTURES, MaterialSource, atomic_path, load_material, read_dds
 from bcf.engine import gl
 
 if TYPE_CHECKING:
@@ -374,12 +373,6 @@ def write_preview(images: PreviewImages, path: Path) -> Path:
         axes.set_axis_off()
         axes.set_title(title, color=_TEXT, fontsize=11, pad=6)
     figure.suptitle(_suptitle(images), color=_TEXT, fontsize=12, y=1 - 8 / height, va="top")
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.name}.tmp-{os.getpid()}.png")  # keeps .png: the format comes from it
-    try:
+    with atomic_path(Path(path)) as temporary:
         figure.savefig(temporary, dpi=_DPI, facecolor=_FIGURE_BACKGROUND, format="png")
-        os.replace(temporary, path)
-    finally:
-        temporary.unlink(missing_ok=True)
-    return path
+    return Path(path)

@@ -3,7 +3,7 @@
 Usage: .venv/bin/python examples/make_sample.py [MATERIAL_DIR] [OUT_DIR]
 
 For each texture of the set (albedo `*_diff_*`, normal `*_nor_gl_*`, packed AO/rough/metal `*_arm_*`): take the
-top-left 512x512 texels, box-filter them 2x down to 256x256 (`bcf.core.material.images.mip_chain` level 1: the mean of
+top-left 512x512 texels, box-filter them 2x down to 256x256 (`bcf.core.mip_chain` level 1: the mean of
 each 2x2 texel square, no colour conversion), and save as an 8-bit RGB PNG (values rounded to nearest).
 """
 
@@ -12,7 +12,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from bcf.core.material.images import mip_chain, read_rgb, write_rgb
+from bcf.core import mip_chain, read_rgb, write_rgb
 
 DEFAULT_MATERIAL = Path("/work/shared/materials/wood_peeling_paint_weathered")
 DEFAULT_OUT = Path(__file__).resolve().parent / "sample"

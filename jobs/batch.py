@@ -24,7 +24,7 @@ from pydantic import BaseModel
 
 from bcf.core import (GENERATOR, MANIFEST_FILE, AssetScan, FoundMaterial, JobOptions, MaterialError, MaterialFiles,
                       OutputExistsError, Report, ReportError, TrainingProgress, compress_material, file_sha256,
-                      is_current, load_texture_set, read_report, result_identity)
+                      is_current, load_texture_set, read_report, result_identity, write_text_atomic)
 
 __all__ = ["BATCH_SUMMARY_FILE", "BatchItem", "BatchMaterial", "BatchSummary", "MaterialEvent", "format_summary",
            "plan_batch", "previous_result", "run_local", "split_done", "summarise", "write_summary"]
@@ -181,21 +181,13 @@ def compress_one(entry: BatchMaterial, options: JobOptions,
     return result_item(entry, rep, "compressed", time.perf_counter() - started)
 
 
-# Worker processes of `run_local(jobs > 1)`: the event queue and thread count come with the process.
-_events: Optional[multiprocessing.Queue] = None
-
-
-def _init_process(events: multiprocessing.Queue, threads: int) -> None:
+def _compress_in_process(entry: BatchMaterial, options: JobOptions, events: "queue_module.Queue[MaterialEvent]",
+                         threads: int) -> BatchItem:
+    """`compress_one` in a worker process of `run_local`, its events sent back through `events` (a manager's
+    queue, so it travels as an argument) and its share of the cores set first."""
     import torch
 
-    global _events
-    _events = events
     torch.set_num_threads(threads)
-
-
-def _compress_in_process(entry: BatchMaterial, options: JobOptions) -> BatchItem:
-    assert _events is not None
-    events = _events
     name = entry.found.material
     events.put(MaterialEvent(name, "started"))
     item = compress_one(entry, options, lambda p: events.put(MaterialEvent(name, "progress", p)),
@@ -221,35 +213,35 @@ def run_local(todo: Sequence[BatchMaterial], options: JobOptions, jobs: int = 1,
             items.append(item)
         return items
     context = multiprocessing.get_context("spawn")  # fork after torch threads started is unsafe
-    messages: multiprocessing.Queue = context.Queue()
     threads = max(1, (os.cpu_count() or 1) // jobs)
     done: dict[int, BatchItem] = {}
-    pump = threading.Thread(target=_pump, args=(messages, emit), daemon=True)
-    pump.start()
-    try:
-        with ProcessPoolExecutor(jobs, mp_context=context, initializer=_init_process,
-                                 initargs=(messages, threads)) as pool:
-            futures: dict[Future, int] = {pool.submit(_compress_in_process, entry, options): i
-                                          for i, entry in enumerate(todo)}
-            pending = set(futures)
-            while pending:
-                finished, pending = wait(pending, return_when=FIRST_COMPLETED)
-                for future in finished:
-                    index = futures[future]
-                    entry = todo[index]
-                    try:
-                        item = future.result()
-                    except Exception as exc:  # the worker process itself died: nobody announced the end
-                        item = entry.item("failed", error=f"worker process failed: {_error_text(exc)}")
-                        messages.put(MaterialEvent(entry.found.material, "finished", item=item))
-                    done[index] = item
-    finally:
-        messages.put(None)
-        pump.join(timeout=5)
+    with context.Manager() as manager:
+        messages = manager.Queue()
+        pump = threading.Thread(target=_pump, args=(messages, emit), daemon=True)
+        pump.start()
+        try:
+            with ProcessPoolExecutor(jobs, mp_context=context) as pool:
+                futures: dict[Future, int] = {pool.submit(_compress_in_process, entry, options, messages, threads): i
+                                              for i, entry in enumerate(todo)}
+                pending = set(futures)
+                while pending:
+                    finished, pending = wait(pending, return_when=FIRST_COMPLETED)
+                    for future in finished:
+                        index = futures[future]
+                        entry = todo[index]
+                        try:
+                            item = future.result()
+                        except Exception as exc:  # the worker process itself died: nobody announced the end
+                            item = entry.item("failed", error=f"worker process failed: {_error_text(exc)}")
+                            messages.put(MaterialEvent(entry.found.material, "finished", item=item))
+                        done[index] = item
+        finally:
+            messages.put(None)
+            pump.join(timeout=5)
     return [done[i] for i in range(len(todo))]
 
 
-def _pump(messages: multiprocessing.Queue, emit: EventCallback) -> None:
+def _pump(messages: "queue_module.Queue[Optional[MaterialEvent]]", emit: EventCallback) -> None:
     """Forward the worker processes' events, in arrival order, to the display."""
     while True:
         try:
@@ -279,12 +271,7 @@ def now_iso() -> str:
 
 
 def write_summary(output: Path, summary: BatchSummary) -> Path:
-    path = Path(output) / BATCH_SUMMARY_FILE
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.name}.tmp")
-    temporary.write_text(summary.model_dump_json(indent=2) + "\n")
-    temporary.replace(path)
-    return path
+    return write_text_atomic(Path(output) / BATCH_SUMMARY_FILE, summary.model_dump_json(indent=2) + "\n")
 
 
 def format_summary(summary: BatchSummary) -> str:

@@ -24,8 +24,8 @@ from typing import Callable, Optional, Sequence
 
 import numpy as np
 
-from bcf.core import (CompressOptions, InputError, FeatureSize, MaterialFiles, MaterialSource, MipMetrics, Preset,
-                      ProgressCallback, Report, ReportError, TextureSet, compress_material, is_current,
+from bcf.core import (ROLES, CompressOptions, FeatureSize, InputError, MaterialFiles, MaterialSource, MipMetrics,
+                      Preset, ProgressCallback, Report, ReportError, TextureSet, compress_material, is_current,
                       load_texture_set, mip_chain, psnr_from_mse, read_report, resolve_material, result_identity)
 
 __all__ = ["BenchError", "BenchMaterial", "MethodSummary", "find_materials", "downscale", "run_bench",
@@ -50,8 +50,7 @@ def _from_index(root: Path, index: dict) -> list[BenchMaterial]:
     """index.json (see ../shared/materials): {"materials": {name: {role: file, "normal_convention", "layout"}}}."""
     found = []
     for name, entry in sorted(index.get("materials", {}).items()):
-        roles = {role: root / name / entry[role] for role in ("albedo", "normal", "arm", "ao", "roughness",
-                                                               "metalness") if role in entry}
+        roles = {role: root / name / entry[role] for role in ROLES if role in entry}
         files = MaterialFiles(**roles, normal_convention=entry.get("normal_convention"))
         found.append(BenchMaterial(name, files, "clamp" if entry.get("layout") == "uv-atlas" else "wrap"))
     return found

@@ -38,9 +38,9 @@ from os import PathLike
 from pathlib import Path
 from typing import Sequence, Union
 
-from bcf.core.errors import InputError
-
 import numpy as np
+
+from bcf.core.errors import InputError
 
 __all__ = [
     "BC6HTexture",

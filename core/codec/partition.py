@@ -10,11 +10,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bcf.core.codec.bc6h import (BLOCK_BYTES, PARTITION_SUBSETS, WEIGHTS_3BIT, WEIGHTS_4BIT, ModeSpec,
-                                 encode_mode10, encode_mode11, endpoint_range,
-                                 half_bits_to_endpoint_continuous, image_to_block_texels, interpolate,
-                                 mode_for_regions, round_endpoints, unquantize, value_to_half_bits,
-                                 finish_magnitude)
+from bcf.core.codec.bc6h import (BLOCK_BYTES, PARTITION_SUBSETS, WEIGHTS_3BIT, WEIGHTS_4BIT, ModeSpec, encode_mode10,
+                                 encode_mode11, endpoint_range, finish_magnitude, half_bits_to_endpoint_continuous,
+                                 image_to_block_texels, interpolate, mode_for_regions, round_endpoints, unquantize,
+                                 value_to_half_bits)
 
 
 @dataclass(frozen=True)

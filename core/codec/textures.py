@@ -8,7 +8,6 @@ from `images` (which knows nothing about BC6H).
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass
 from os import PathLike
@@ -17,11 +16,9 @@ from typing import Callable, Optional, Sequence, Union
 
 import numpy as np
 
-from bcf.core.codec import containers
+from bcf.core.codec import bc6h, containers, partition
 from bcf.core.codec.containers import BC6HTexture
 from bcf.core.psnr import psnr_from_mse
-from bcf.core.codec import bc6h
-from bcf.core.codec import partition
 
 __all__ = [
     "HALF_MAX",

@@ -13,17 +13,14 @@ import json
 from pathlib import Path
 from typing import Literal
 
-import numpy as np
-import torch
 from pydantic import BaseModel, ConfigDict, ValidationError
 
-from bcf.core.errors import InputError
-from bcf.core.version import GENERATOR
 from bcf.core.codec import containers
+from bcf.core.errors import InputError
+from bcf.core.fit.model import FEATURE_CHANNELS, BlockFeatures, Decoder, NeuralMaterial
 from bcf.core.material.texture_set import MaterialSource
-from bcf.core.fit.model import (FEATURE_CHANNELS, BlockFeatures, Decoder, FeatureTextureSpec, NeuralMaterial,
-                            StaticFeatures)
 from bcf.core.options import ResolvedOptions
+from bcf.core.version import GENERATOR
 
 __all__ = ["DECODER_FILE", "MANIFEST_FILE", "ExportError", "Manifest", "feature_file", "read_manifest",
            "sha256_hex", "write_export"]

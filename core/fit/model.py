@@ -21,12 +21,10 @@ import numpy as np
 import torch
 from torch import nn
 
-from bcf.core.codec import bc6h
-from bcf.core.codec import partition
+from bcf.core.codec import bc6h, partition
 from bcf.core.fit import block_decode
-from bcf.core.options import FEATURE_SCALES
 from bcf.core.fit.sampling import sample_trilinear
-from bcf.core.options import Address
+from bcf.core.options import FEATURE_SCALES, Address
 
 __all__ = ["FEATURE_CHANNELS", "FEATURE_TEXTURES", "OUTPUT_CHANNELS", "BlockFeatures", "Decoder",
            "FeatureTextureSpec", "FreeFeatures", "NeuralMaterial", "StaticFeatures", "feature_textures",

@@ -14,11 +14,11 @@ from typing import Callable, Optional
 import torch
 
 from bcf.core.errors import InputError
-from bcf.core.material.texture_set import TextureSet
 from bcf.core.fit.model import (BlockFeatures, Decoder, FeatureTextureSpec, FreeFeatures, NeuralMaterial,
-                            feature_textures, to_block_features)
-from bcf.core.options import ResolvedOptions
+                                feature_textures, to_block_features)
 from bcf.core.fit.sampling import ReferenceMaterial
+from bcf.core.material.texture_set import TextureSet
+from bcf.core.options import ResolvedOptions
 from bcf.core.psnr import psnr_from_mse
 
 __all__ = ["DeviceUnavailableError", "FitResult", "TrainingProgress", "TrainingStopped", "fit", "require_device"]

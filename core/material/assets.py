@@ -21,10 +21,9 @@ from typing import Literal, Optional
 
 import pydantic
 
-from bcf.core.material.naming import _NOISE, _SEPARATORS, _choose, _classify, _join, _missing_roles, _scan_files
-from bcf.core.material.roles import IMAGE_EXTENSIONS, ROLES
-from bcf.core.material.texture_set import _read_header, load_texture_set
-from bcf.core.material.roles import MaterialError, MaterialFiles, NormalConvention
+from bcf.core.material.naming import NOISE_TOKENS, choose_roles, classify_name, join_names, missing_roles, scan_files
+from bcf.core.material.roles import IMAGE_EXTENSIONS, ROLES, MaterialError, MaterialFiles, NormalConvention
+from bcf.core.material.texture_set import read_header
 
 __all__ = ["AssetRole", "AssetScan", "FoundMaterial", "Unplaced", "scan_assets"]
 
@@ -127,13 +126,13 @@ def _hidden(name: str) -> bool:
 
 
 def _image(root: Path, path: Path) -> _Image:
-    """Classify one image by its name (_classify) and work out its prefix."""
-    named = _classify(path)
+    """Classify one image by its name (classify_name) and work out its prefix."""
+    named = classify_name(path)
     role: Optional[AssetRole] = named.role if named.role is not None else named.extra
     spans = [(m.start(), m.end(), m.group().lower()) for m in _TOKEN.finditer(path.stem)][:named.prefix]
     # Resolution and format tokens before the map name (ambientCG's `Metal009_2K_Color`) are not part of the
     # material's name; numbers are (`denim_fabric_02`, `brick_01` next to `brick_02`).
-    while spans and _NOISE.fullmatch(spans[-1][2]) and not spans[-1][2].isdigit():
+    while spans and NOISE_TOKENS.fullmatch(spans[-1][2]) and not spans[-1][2].isdigit():
         spans.pop()
     return _Image(path=path, rel=path.relative_to(root).as_posix(), role=role,
                   unknown=named.role is None and not named.unused,
@@ -176,11 +175,11 @@ def _material(root: Path, folder: Path, name: str, output: str, images: list[_Im
     """One material from `images` (all in `folder`) with the one-folder discovery; `key` is its albedo's prefix."""
     rel_dir = folder.relative_to(root).as_posix()
     problems: list[str] = []
-    scan = _scan_files(image.path for image in images)
-    chosen = _choose(Path(rel_dir), scan, problems=problems)
+    scan = scan_files(image.path for image in images)
+    chosen = choose_roles(Path(rel_dir), scan, problems=problems)
     roles = chosen.roles()
     # A role with several candidates already has its problem; it is not missing as well.
-    missing = _missing_roles(role for role, candidates in scan.candidates.items() if candidates)
+    missing = missing_roles(role for role, candidates in scan.candidates.items() if candidates)
     if missing:
         problems.append(f"incomplete material: missing {', '.join(missing)}")
     files: dict[AssetRole, str] = {role: path.relative_to(root).as_posix() for role, path in roles.items()}
@@ -204,14 +203,14 @@ def _pick_extra(role: str, candidates: list[_Image], key: str | None) -> tuple[s
     preferred = [image for image in candidates if image.key == key] or candidates
     chosen = preferred[0]
     others = [image.path.name for image in candidates if image is not chosen]
-    note = [f"several {role} maps: listing {chosen.path.name}, not {_join(others)}"] if others else []
+    note = [f"several {role} maps: listing {chosen.path.name}, not {join_names(others)}"] if others else []
     return chosen.rel, note
 
 
 def _resolution(path: Path) -> tuple[int, int] | None:
     """(width, height) from the image header, without decoding pixels; None if it cannot be read."""
     try:
-        header = _read_header(path)
+        header = read_header(path)
     except MaterialError:
         return None
     return header.width, header.height
@@ -227,4 +226,4 @@ def _flag_shared_outputs(materials: list[FoundMaterial]) -> None:
         for found in shared if len(shared) > 1 else []:
             others = [other.material for other in shared if other is not found]
             found.problems.append(f"output folder '{found.output}' is also the output of "
-                                  f"{_join(others)}; rename or move one")
+                                  f"{join_names(others)}; rename or move one")

@@ -13,8 +13,8 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
-from bcf.core.material.roles import (IMAGE_EXTENSIONS, PACKED_ROLES, ROLES, ExtraRole, MaterialError,
-                                     MaterialFiles, NormalConvention, Role)
+from bcf.core.material.roles import (IMAGE_EXTENSIONS, PACKED_ROLES, ROLES, ExtraRole, MaterialError, MaterialFiles,
+                                     NormalConvention, Role)
 
 # --------------------------------------------------------------------------------------------- naming
 
@@ -77,7 +77,7 @@ _EXTRA_MAPS: dict[str, ExtraRole] = {
 
 # Tokens that can trail the map name: resolutions (2k, 1K), formats (ambientCG's "1K-JPG"), Poly Haven's
 # variant numbers (`col_1`) and generic words. They never decide a role.
-_NOISE = re.compile(r"\d+k|\d+|jpe?g|png|exr|tga|tiff?|map|tex|texture")
+NOISE_TOKENS = re.compile(r"\d+k|\d+|jpe?g|png|exr|tga|tiff?|map|tex|texture")
 _SEPARATORS = re.compile(r"[_\-.\s]+")
 
 # ambientCG's old (cc0textures) naming `<Name>_<N>K[-FMT]_Normal`: those sets shipped a single normal map and it
@@ -101,12 +101,12 @@ class _Named:
 def _tokens(stem: str) -> list[str]:
     """Lower-case tokens of a file stem, split on `_`, `-`, `.` and white space, trailing noise removed."""
     tokens = [token for token in _SEPARATORS.split(stem.lower()) if token]
-    while tokens and _NOISE.fullmatch(tokens[-1]):
+    while tokens and NOISE_TOKENS.fullmatch(tokens[-1]):
         tokens.pop()
     return tokens
 
 
-def _classify(path: Path) -> _Named:
+def classify_name(path: Path) -> _Named:
     """The role a file's name gives it. Only the end of the name counts (after resolution and format tokens),
     so a material called e.g. `rusty_metal_02` does not make every one of its files a metalness map."""
     if path.suffix.lower() not in IMAGE_EXTENSIONS:
@@ -127,7 +127,7 @@ def _classify(path: Path) -> _Named:
 
 def _convention_from_name(path: Path) -> NormalConvention | None:
     """The normal-map convention `path`'s name states, None when it does not."""
-    named = _classify(path)
+    named = classify_name(path)
     return named.convention if named.role == "normal" else None
 
 
@@ -162,14 +162,14 @@ def _scan(directory: Path) -> _Scan:
     files = sorted((p for p in directory.iterdir() if p.is_file()), key=lambda p: p.name)
     if not files:
         raise MaterialError("the folder has no files", file=directory)
-    return _scan_files(files)
+    return scan_files(files)
 
 
-def _scan_files(files: Iterable[Path]) -> _Scan:
+def scan_files(files: Iterable[Path]) -> _Scan:
     """Classify `files` (in the given order): `_scan` for a folder, or an asset scan for part of one."""
     scan = _Scan(candidates={role: [] for role in ROLES}, ignored=[], unknown_images=[])
     for path in files:
-        named = _classify(path)
+        named = classify_name(path)
         if named.role is not None:
             scan.candidates[named.role].append((path, named.convention))
         else:
@@ -199,20 +199,20 @@ def _pick(directory: Path, role: Role, candidates: list[tuple[Path, NormalConven
             others = [path for path, named in candidates if named != wanted]
             label = {"opengl": "OpenGL", "directx": "DirectX"}
             note = (f"both OpenGL and DirectX normal maps found; using {label[wanted]} {chosen[0].name}, "
-                    f"ignoring {_join(p.name for p in others)}")
+                    f"ignoring {join_names(p.name for p in others)}")
             return chosen[0], wanted, [note]
     raise MaterialError(f"{len(candidates)} files could be the {role} map: "
-                        f"{_join(path.name for path, _ in candidates)}", file=directory, role=role,
+                        f"{join_names(path.name for path, _ in candidates)}", file=directory, role=role,
                         fix="remove all but one or name it with {}", options=[role])
 
 
-def _join(names: Iterable[str]) -> str:
+def join_names(names: Iterable[str]) -> str:
     """'a', 'a and b', 'a, b and c'."""
     items = list(names)
     return items[0] if len(items) == 1 else f"{', '.join(items[:-1])} and {items[-1]}"
 
 
-def _choose(directory: Path, scan: _Scan, skip: frozenset[Role] = frozenset(),
+def choose_roles(directory: Path, scan: _Scan, skip: frozenset[Role] = frozenset(),
             convention: NormalConvention | None = None, problems: list[str] | None = None) -> MaterialFiles:
     """One file per role from `scan`, leaving out the roles in `skip` (the caller has files for them);
     `convention` is the normal convention the user asked for, if any (see `_pick`).
@@ -250,9 +250,9 @@ def _choose(directory: Path, scan: _Scan, skip: frozenset[Role] = frozenset(),
         if separate:
             ignored.extend(separate)
             notes.append(f"using the ARM map {chosen['arm'].name} for AO, roughness and metalness; ignoring "
-                         f"{_join(p.name for p in separate)}")
+                         f"{join_names(p.name for p in separate)}")
     if scan.unknown_images:
-        notes.append(f"ignoring images whose names match no role: {_join(p.name for p in scan.unknown_images)}")
+        notes.append(f"ignoring images whose names match no role: {join_names(p.name for p in scan.unknown_images)}")
     return MaterialFiles(**chosen, normal_convention=normal_convention, ignored=sorted(ignored), notes=notes)
 
 
@@ -263,7 +263,7 @@ def discover_material(directory: Path) -> MaterialFiles:
     empty `directory` and for two files that could play the same role.
     """
     directory = Path(directory)
-    return _choose(directory, _scan(directory))
+    return choose_roles(directory, _scan(directory))
 
 
 # ----------------------------------------------------------------------------------------- resolution
@@ -293,11 +293,11 @@ def resolve_material(directory: Path | None, explicit: MaterialFiles) -> Materia
         # (or separate map) excludes the other packing too.
         scan = _scan(Path(directory))
         excluded: set[Role] = set(PACKED_ROLES) if "arm" in given else {"arm"} if separate else set()
-        found = _choose(Path(directory), scan, frozenset(set(given) | excluded), explicit.normal_convention)
+        found = choose_roles(Path(directory), scan, frozenset(set(given) | excluded), explicit.normal_convention)
         dropped = [path for role in sorted(excluded) for path, _ in scan.candidates[role]]
         if dropped:
-            reason = "an ARM map" if "arm" in given else _join(r for r in PACKED_ROLES if r in given) + " maps"
-            notes.append(f"ignoring {_join(p.name for p in dropped)}: {reason} given explicitly")
+            reason = "an ARM map" if "arm" in given else join_names(r for r in PACKED_ROLES if r in given) + " maps"
+            notes.append(f"ignoring {join_names(p.name for p in dropped)}: {reason} given explicitly")
         notes = found.notes + notes
     roles = {**found.roles(), **given}
     if explicit.normal_convention is not None:
@@ -316,7 +316,7 @@ def resolve_material(directory: Path | None, explicit: MaterialFiles) -> Materia
     return resolved
 
 
-def _missing_roles(roles: Iterable[Role]) -> list[str]:
+def missing_roles(roles: Iterable[Role]) -> list[str]:
     """The required roles absent from `roles`, as messages name them: albedo, normal, roughness (or an ARM map)."""
     present = set(roles)
     missing = [role for role in ("albedo", "normal") if role not in present]
@@ -335,7 +335,7 @@ def check_complete(files: MaterialFiles, directory: Path | None) -> None:
     if "arm" in roles and packed:
         raise MaterialError(f"an ARM map ({roles['arm'].name}) and separate {'/'.join(packed)} maps cannot be "
                             "used together", file=where, role="arm")
-    missing = _missing_roles(roles)
+    missing = missing_roles(roles)
     if missing:
         found = ", ".join(f"{role} {path.name}" for role, path in roles.items()) or "nothing"
         raise MaterialError(f"incomplete material: found {found}; missing {', '.join(missing)}; "

@@ -17,8 +17,9 @@ import pydantic
 from bcf.core.files import file_sha256
 from bcf.core.material.images import ImageReadError, read_image
 from bcf.core.material.naming import check_complete, resolve_material
-from bcf.core.material.roles import (CHANNEL_OF, CHANNELS, DEFAULTS, MIN_SIZE, PACKED_ROLES, TEXTURES,
-                                     MaterialError, MaterialFiles, NormalConvention, Role)
+from bcf.core.material.roles import (CHANNEL_OF, CHANNELS, DEFAULTS, MIN_SIZE, PACKED_ROLES, TEXTURES, MaterialError,
+                                     MaterialFiles, NormalConvention, Role)
+
 
 class SourceFile(pydantic.BaseModel):
     """One input file as the manifest records it."""
@@ -84,7 +85,7 @@ class _Header:
     bits: str
 
 
-def _read_header(path: Path) -> _Header:
+def read_header(path: Path) -> _Header:
     """Open `path` and read its header only, so size and channel problems surface before any decoding."""
     if not path.is_file():
         raise MaterialError("no such file", file=path)
@@ -193,7 +194,7 @@ def load_texture_set(files: MaterialFiles, name: str | None = None) -> TextureSe
     roles = files.roles()
     headers: dict[Role, tuple[Path, _Header]] = {}
     for role, path in roles.items():
-        header = _read_header(Path(path))
+        header = read_header(Path(path))
         _check_channels(role, Path(path), header.channels)
         headers[role] = (Path(path), header)
     width, height = _check_sizes(headers)

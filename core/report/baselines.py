@@ -29,13 +29,13 @@ import numpy as np
 import torch
 
 from bcf.core.codec import containers
-from bcf.core.material import images
-from bcf.core.report import metrics
 from bcf.core.export.decode import DecoderFunction
-from bcf.core.report import report_json as report
-from bcf.core.material.roles import TEXTURES
 from bcf.core.fit.sampling import ReferenceMaterial, sample_trilinear
+from bcf.core.material import images
+from bcf.core.material.roles import TEXTURES
 from bcf.core.options import BASELINES, Address, BaselineSpec
+from bcf.core.report import metrics
+from bcf.core.report import report_json as report
 
 __all__ = ["ASTC_QUALITY", "BC1_LEVEL", "DecodedBaseline", "PyramidDecoder", "encode_baseline", "evaluate_baseline",
            "run_codec_baseline", "write_baseline_files"]

@@ -8,6 +8,7 @@ over the same mips; anything else is a `CheckError`, never a pass.
 from __future__ import annotations
 
 from dataclasses import dataclass
+
 from bcf.core.errors import InputError
 from bcf.core.report.report_json import Report, TextureScores
 

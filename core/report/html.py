@@ -14,8 +14,6 @@ from __future__ import annotations
 import base64
 import html
 import io
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, NamedTuple, Optional, Sequence
@@ -30,6 +28,7 @@ from matplotlib.image import imsave
 from matplotlib.text import Annotation
 from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
+from bcf.core.files import write_text_atomic
 from bcf.core.material.roles import TEXTURES, material_images
 from bcf.core.psnr import psnr_from_mse
 from bcf.core.report.report_json import Aggregate, MipMetrics, Report
@@ -459,17 +458,7 @@ def render_html_report(report: Report, crops: Sequence[Crop]) -> str:
 
 
 def write_html_report(path: Path, report: Report, crops: Sequence[Crop]) -> None:
-    """Render and write the page atomically: a temporary file in the same folder replaces `path`, so a
-    reader never sees half a page and a failure leaves any previous page as it was."""
-    path = Path(path)
+    """Render and write the page atomically (`write_text_atomic`): a reader never sees half a page and a failure
+    leaves any previous page as it was."""
     page = render_html_report(report, crops)  # before touching the disk: a rendering error writes nothing
-    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(handle, "w", encoding="utf-8") as stream:
-            stream.write(page)
-        os.chmod(temporary, 0o644)  # mkstemp makes the file private; a report is meant to be shared
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
-
+    write_text_atomic(Path(path), page)

@@ -12,9 +12,9 @@ from typing import Optional
 import torch
 import torch.nn.functional as F
 
-from bcf.core.material.roles import TEXTURES
 from bcf.core.export.decode import DecoderFunction, render_mip
 from bcf.core.fit.sampling import ReferenceMaterial
+from bcf.core.material.roles import TEXTURES
 from bcf.core.psnr import psnr_from_mse
 
 __all__ = ["GROUPS", "MipScores", "evaluate", "mean_baseline", "ssim"]

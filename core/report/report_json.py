@@ -14,9 +14,9 @@ from pydantic import BaseModel, ConfigDict, ValidationError
 
 from bcf.core.errors import InputError
 from bcf.core.material.texture_set import MaterialSource
-from bcf.core.report.metrics import MipScores
-from bcf.core.psnr import psnr_from_mse
 from bcf.core.options import ResolvedOptions
+from bcf.core.psnr import psnr_from_mse
+from bcf.core.report.metrics import MipScores
 
 __all__ = ["REPORT_FILE", "Aggregate", "BaselineReport", "Evaluation", "MipMetrics", "Report", "ReportError",
            "SizeReport", "TextureScores", "TimingReport", "bc1_bc5_bytes", "format_baselines", "format_report",
