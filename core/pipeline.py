@@ -23,7 +23,7 @@ from pydantic import BaseModel, ConfigDict
 
 from bcf.core.errors import InputError
 from bcf.core.export.artifacts import write_export
-from bcf.core.export.decode import DecoderFunction, load_export, render_region
+from bcf.core.export.decode import DecoderFunction, load_export
 from bcf.core.files import replace_folder, staging_folder
 from bcf.core.fit.sampling import ReferenceMaterial, material_mip_count
 from bcf.core.fit.training import FitResult, ProgressCallback, StopCallback, fit
@@ -40,10 +40,6 @@ __all__ = ["BASELINES_FOLDER", "OutputExistsError", "ResultIdentity", "check_out
 
 BASELINES_FOLDER = "baselines"  # OUT/baselines/<name>/: the baseline codecs' texture files
 JITTER_SEED = 12345  # fixed, so reports of the same export are identical
-CROP_TEXELS = (128, 64)  # sides of the report.html crops at mip 0 and at the middle mip
-# Methods shown in the report.html crops beside ours (when they were run): the usual BC set at both sizes,
-# ASTC at about our size, and what our phase 2 improves on.
-CROP_BASELINES = ("bc1_bc5_full", "bc1_bc5_half", "astc_12x12_full", "astc_8x8_full", "naive_bc6")
 NoteCallback = Callable[[str], None]
 
 
@@ -177,7 +173,7 @@ def compress_material(material: TextureSet, options: CompressOptions | ResolvedO
                                        total_s=0.0),
             history=[report.HistoryEntry(**vars(h)) for h in result.history], baselines=baseline_reports)
         say("writing report.html")
-        crops = _crops(reference, {k: v for k, v in decoders.items() if k == "ours" or k in CROP_BASELINES})
+        crops = html_report.select_crops(reference, decoders)
         rep.timing.total_s = time.perf_counter() - started
         html_report.write_html_report(staged / html_report.HTML_REPORT_FILE, rep, crops)
         # files_bytes counts report.json itself: write once to measure, then with the final number.
@@ -203,37 +199,6 @@ def _run_baseline(name: str, material: TextureSet, reference: ReferenceMaterial,
         "(paper Fig. 4)", "bcf partition search", material.width, material.height, naive, our_bytes,
         result.transition_s, reference)
     return scored, naive
-
-
-def _detail_window(mip: torch.Tensor, size: int) -> tuple[int, int]:
-    """(x, y) of the size x size window, on a grid of half-overlapping windows, with the most variance
-    over the 8 channels: crops should show detail, not a flat patch."""
-    _, h, w = mip.shape
-    step = max(1, size // 2)
-    best, where = -1.0, (0, 0)
-    for y in range(0, h - size + 1, step):  # a few dozen windows at most
-        row = mip[:, y:y + size].unfold(2, size, step)  # (C, size, windows, size)
-        variance = row.var(dim=(1, 3)).sum(0)
-        index = int(torch.argmax(variance))
-        if float(variance[index]) > best:
-            best, where = float(variance[index]), (index * step, y)
-    return where
-
-
-def _crops(reference: ReferenceMaterial, decoders: dict[str, DecoderFunction]) -> list[html_report.Crop]:
-    """Crops of mip 0 and the middle mip for report.html: reference and every decoder at the texel centres."""
-    crops = []
-    for level, side in zip((0, reference.levels // 2), CROP_TEXELS):
-        mip = reference.mip(level)
-        _, h, w = mip.shape
-        size = min(side, w, h)
-        x, y = _detail_window(mip, size)
-        methods = {name: render_region(decoder, w, h, float(level), x, y, size).clamp(0.0, 1.0)
-                   .permute(1, 2, 0).numpy() for name, decoder in decoders.items()}
-        crops.append(html_report.Crop(mip=level, x=x, y=y, size=size,
-                                      reference=mip[:, y:y + size, x:x + size].permute(1, 2, 0).numpy(),
-                                      methods=methods))
-    return crops
 
 
 def _device_name(device: str) -> str:

@@ -173,9 +173,8 @@ def compress_one(entry: BatchMaterial, options: JobOptions,
             raise MaterialError("; ".join(entry.found.problems))
         check_replaceable(entry.output)
         texture_set = load_texture_set(entry.files, name=entry.found.material.replace("/", "_"))
-        rep = compress_material(texture_set, options.compress_options(), entry.output,
-                                         progress=on_progress, overwrite=True, baselines=options.baselines,
-                                         note=on_stage)
+        rep = compress_material(texture_set, options.compress_options(), entry.output, progress=on_progress,
+                                overwrite=True, baselines=options.baselines, note=on_stage)
     except Exception as exc:  # one material's failure is reported, the batch goes on
         return entry.item("failed", error=_error_text(exc), seconds=round(time.perf_counter() - started, 2))
     return result_item(entry, rep, "compressed", time.perf_counter() - started)

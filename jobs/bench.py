@@ -141,7 +141,7 @@ def run_bench(root: Path, output: Path, preset: Preset = "default",
                 say(f"[{number}/{len(materials)}] {entry.name} {size}: {texture_set.width}x{texture_set.height}, "
                     f"{entry.address} ({time.perf_counter() - started:.0f} s so far)")
                 kept = compress_material(texture_set, options, folder, progress=progress, overwrite=True,
-                                                  baselines=wanted)
+                                         baselines=wanted)
             reports[entry.name][size] = kept
     return reports
 

@@ -118,8 +118,8 @@ def fit_blocks(texels: np.ndarray, regions: int, signed: bool, chunk: int = 1638
     parts = [_fit_chunk(texels[i:i + chunk], spec, signed) for i in range(0, len(texels), chunk)]
     if not parts:
         parts = [_fit_chunk(texels, spec, signed)]
-    return BlockFit(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("endpoints", "weights",
-                                                                            "partition", "error")))
+    return BlockFit(*(np.concatenate([getattr(p, f) for p in parts])
+                      for f in ("endpoints", "weights", "partition", "error")))
 
 
 def _fit_chunk(texels: np.ndarray, spec: ModeSpec, signed: bool) -> BlockFit:

@@ -109,7 +109,8 @@ def render_mip(decoder: DecoderFunction, width: int, height: int, s: float,
 
 
 @torch.no_grad()
-def render_region(decoder: DecoderFunction, width: int, height: int, s: float, x: int, y: int, size: int) -> torch.Tensor:
+def render_region(decoder: DecoderFunction, width: int, height: int, s: float, x: int, y: int,
+                  size: int) -> torch.Tensor:
     """Evaluate a decoder at the texel centres of the size x size square at (x, y) of a width x height grid at
     scale s: -> (C, size, size). For crops of a large mip without rendering all of it."""
     xs = (torch.arange(x, x + size, dtype=torch.float32) + 0.5) / width

@@ -179,8 +179,8 @@ class BlockFeatures(nn.Module):
         i = self._index(texture, level)
         w, h = self.specs[texture].level_size(level)
         partition = self._partition(i) if self.spec.regions == 2 else None
-        texels = block_decode.decode_blocks_differentiable(self.endpoints[i] * self.top, self.weights[i], partition,
-                                                   signed=False)  # (nb, 16, 3)
+        texels = block_decode.decode_blocks_differentiable(self.endpoints[i] * self.top, self.weights[i],
+                                                           partition, signed=False)  # (nb, 16, 3)
         return texels.view(h // 4, w // 4, 4, 4, 3).permute(4, 0, 2, 1, 3).reshape(3, h, w)
 
     def clamp_(self) -> None:
@@ -269,7 +269,7 @@ def to_block_features(free: FreeFeatures, decoder: Decoder, mode: Literal[10, 11
             x = free.level(i, level).detach().cpu().numpy().astype(np.float64).transpose(1, 2, 0)
             stored = np.clip(c0 + (x - low) / (high - low) * (c1 - c0), c0, c1)
             fits.append(partition.fit_blocks(bc6h.image_to_block_texels(stored).reshape(-1, 16, 3), regions,
-                                        signed=False))
+                                             signed=False))
     with torch.no_grad():
         decoder.input_scale.copy_(torch.from_numpy(scale))
         decoder.input_offset.copy_(torch.from_numpy(offset))

@@ -213,7 +213,7 @@ def join_names(names: Iterable[str]) -> str:
 
 
 def choose_roles(directory: Path, scan: _Scan, skip: frozenset[Role] = frozenset(),
-            convention: NormalConvention | None = None, problems: list[str] | None = None) -> MaterialFiles:
+                 convention: NormalConvention | None = None, problems: list[str] | None = None) -> MaterialFiles:
     """One file per role from `scan`, leaving out the roles in `skip` (the caller has files for them);
     `convention` is the normal convention the user asked for, if any (see `_pick`).
 

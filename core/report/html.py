@@ -1,7 +1,7 @@
 """report.html: one self-contained page showing a compressed material's report next to its baselines.
 
 Everything the page shows comes from a `Report` (scores, sizes, times: the same numbers as report.json) plus a
-few `Crop`s of decoded texels that the caller renders. The page has no JavaScript and no external reference:
+few `Crop`s of decoded texels (`select_crops` picks and renders them). The page has no JavaScript and no external reference:
 images and charts are PNGs embedded as data: URLs and the stylesheet is inline, so the file can be mailed,
 archived or opened offline and looks the same.
 
@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Iterable, NamedTuple, Optional, Sequence
 
 import numpy as np
+import torch
 from matplotlib import colormaps
 from matplotlib.axes import Axes
 from matplotlib.backend_bases import RendererBase
@@ -28,16 +29,22 @@ from matplotlib.image import imsave
 from matplotlib.text import Annotation
 from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
+from bcf.core.export.decode import DecoderFunction, render_region
 from bcf.core.files import write_text_atomic
+from bcf.core.fit.sampling import ReferenceMaterial
 from bcf.core.material.roles import TEXTURES, material_images
 from bcf.core.psnr import psnr_from_mse
 from bcf.core.report.report_json import Aggregate, MipMetrics, Report
 
-__all__ = ["HTML_REPORT_FILE", "Crop", "render_html_report", "write_html_report"]
+__all__ = ["HTML_REPORT_FILE", "Crop", "render_html_report", "select_crops", "write_html_report"]
 
 HTML_REPORT_FILE = "report.html"
 
 OURS = "ours"
+CROP_TEXELS = (128, 64)  # sides of the crops at mip 0 and at the middle mip
+# Methods shown in the crops beside ours (when they were run): the usual BC set at both sizes, ASTC at about
+# our size, and what our phase 2 improves on.
+CROP_BASELINES = ("bc1_bc5_full", "bc1_bc5_half", "astc_12x12_full", "astc_8x8_full", "naive_bc6")
 MIB = float(1 << 20)
 ERROR_MAX = 0.1  # heat maps saturate here: one fixed scale so maps of different methods compare directly
 ERROR_CMAP = "inferno"
@@ -372,6 +379,39 @@ def _crop(crop: Crop, mip_size: Optional[tuple[int, int]]) -> str:
              f"y {crop.y}&ndash;{crop.y + crop.size - 1} ({crop.size} x {crop.size}, shown {factor}x)")
     return (f"<figure class=crop><figcaption>{title}</figcaption><div class=scroll><table class=grid>"
             f"<thead><tr>{header}</tr></thead><tbody>{''.join(rows)}</tbody></table></div></figure>")
+
+
+def _detail_window(mip: torch.Tensor, size: int) -> tuple[int, int]:
+    """(x, y) of the size x size window, on a grid of half-overlapping windows, with the most variance
+    over the 8 channels: crops should show detail, not a flat patch."""
+    _, h, w = mip.shape
+    step = max(1, size // 2)
+    best, where = -1.0, (0, 0)
+    for y in range(0, h - size + 1, step):  # a few dozen windows at most
+        row = mip[:, y:y + size].unfold(2, size, step)  # (C, size, windows, size)
+        variance = row.var(dim=(1, 3)).sum(0)
+        index = int(torch.argmax(variance))
+        if float(variance[index]) > best:
+            best, where = float(variance[index]), (index * step, y)
+    return where
+
+
+def select_crops(reference: ReferenceMaterial, decoders: dict[str, DecoderFunction]) -> list[Crop]:
+    """Crops of mip 0 and the middle mip for the page: the reference and, of `decoders`, ours and
+    `CROP_BASELINES`, at the texel centres of the most detailed window."""
+    decoders = {k: v for k, v in decoders.items() if k == OURS or k in CROP_BASELINES}
+    crops = []
+    for level, side in zip((0, reference.levels // 2), CROP_TEXELS):
+        mip = reference.mip(level)
+        _, h, w = mip.shape
+        size = min(side, w, h)
+        x, y = _detail_window(mip, size)
+        methods = {name: render_region(decoder, w, h, float(level), x, y, size).clamp(0.0, 1.0)
+                   .permute(1, 2, 0).numpy() for name, decoder in decoders.items()}
+        crops.append(Crop(mip=level, x=x, y=y, size=size,
+                          reference=mip[:, y:y + size, x:x + size].permute(1, 2, 0).numpy(),
+                          methods=methods))
+    return crops
 
 
 def _crops(report: Report, crops: Sequence[Crop]) -> str:

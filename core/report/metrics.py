@@ -67,7 +67,8 @@ def _scores(reference: torch.Tensor, test: torch.Tensor) -> MipScores:
 
 
 @torch.no_grad()
-def evaluate(decoder: DecoderFunction, reference: ReferenceMaterial, jitter_seed: Optional[int] = None) -> list[MipScores]:
+def evaluate(decoder: DecoderFunction, reference: ReferenceMaterial,
+             jitter_seed: Optional[int] = None) -> list[MipScores]:
     """Scores of `decoder` at every mip m of the reference (scale s = m).
 
     Without jitter: the decoder at the texel centres of mip m against the stored mip. With `jitter_seed`: the
