@@ -81,8 +81,8 @@ class CompressOptions(BaseModel):
 
     preset: Preset = Field("default", description="training schedule: fast (tests, demo), default, paper")
     features: FeatureSize = Field("1k", description="T0 at W/4 (0.5k), W/2 (1k) or W (2k)")
-    address: Address = Field("wrap", description="texture addressing: wrap for tiling materials, clamp for UV "
-                                                "atlases")
+    address: Address = Field(
+        "wrap", description="texture addressing: wrap for tiling materials, clamp for UV atlases")
     device: Device = "cpu"
     seed: int = Field(0, ge=0)
     phase1_iterations: Optional[int] = Field(None, ge=0)
