@@ -28,14 +28,8 @@ if TYPE_CHECKING:
 # ------------------------------------------------------------------------------------------------- list
 
 
-def _listing(scan: "AssetScan") -> list[dict]:
-    return [{"material": m.material, "dir": m.dir, "files": dict(m.files), "normal_convention": m.normal_convention,
-             "resolution": list(m.resolution) if m.resolution else None, "problems": list(m.problems)}
-            for m in scan.materials]
-
-
 def _print_json(scan: "AssetScan") -> None:
-    print(json.dumps(_listing(scan), indent=2))
+    print(json.dumps([m.model_dump(mode="json", exclude={"output", "notes"}) for m in scan.materials], indent=2))
     for u in scan.unplaced:
         print(f"bcf: not placed: {u.path}: {u.reason}", file=sys.stderr)
 

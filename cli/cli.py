@@ -1,13 +1,12 @@
 """The `bcf` command line: a thin layer over `bcf.core` (and `bcf.jobs`, `bcf.service`, `bcf.engine`).
 
-Each command is a typed function; cyclopts turns its signature into flags. Options that the library models
-already define (`JobOptions`, `MaterialFiles`) are not declared again: a parameter of such a model type,
-annotated with `model_flags(...)`, becomes one flag per named field, with the field's type, default,
-choices, constraints and description.
+Each command is a typed function whose signature cyclopts turns into flags; its docstring is its help. Options
+the library's pydantic models define (`JobOptions`, `MaterialFiles`) are not declared again: a parameter of the
+model's type, annotated with `model_flags(...)`, becomes one flag per named field, with the field's type,
+default, choices, constraints and description.
 
-Exit codes: 0 success, 1 `check` found something worse or `batch` had failures, 2 user error (bad arguments,
-missing or unreadable input, malformed container, an output that cannot be written), 130 interrupted. User
-errors print one line `bcf: error: ...` on stderr.
+Exit codes: 0 success, 1 `check` found something worse or `batch` had failures, 2 user error (one line
+`bcf: error: ...` on stderr), 130 interrupted.
 """
 
 from __future__ import annotations
@@ -22,8 +21,6 @@ from cyclopts import App, CycloptsError, Group, Parameter
 from cyclopts.argument import ArgumentCollection
 
 from bcf.core import InputError, __version__
-
-# ------------------------------------------------------------------------------- shared parameter types
 
 Output = Annotated[Path, Parameter(name=["-o", "--output"])]
 OptionalOutput = Annotated[Optional[Path], Parameter(name=["-o", "--output"])]
@@ -43,14 +40,12 @@ def _one_at_most(arguments: ArgumentCollection) -> None:
         raise ValueError(f"{given[1]} not allowed with {given[0]}")
 
 
-# Options of a command that exclude each other (`--levels`/`--no-mips`, `--mip`/`--all-mips`).
+# A command's options that exclude each other (`--levels`/`--no-mips`, `--mip`/`--all-mips`).
 EXCLUSIVE = Group("", validator=_one_at_most, show=False)
-
-# ---------------------------------------------------------------------------------------------- helpers
 
 
 def flags(names: Sequence[str]) -> str:
-    """Option names as the pydantic models spell them (`normal_convention`) -> the flags (`--normal-convention`)."""
+    """Option names as the models spell them (`normal_convention`) -> flags (`--normal-convention`)."""
     return "/".join("--" + name.replace("_", "-") for name in names)
 
 
@@ -58,33 +53,34 @@ def say(message: str = "") -> None:
     print(message, flush=True)  # flush: progress should show while the next step runs
 
 
-def warn(message: str) -> None:
-    print(f"bcf: warning: {message}", file=sys.stderr)
-
-
 def clock(seconds: float) -> str:
     seconds = int(round(max(seconds, 0.0)))
     return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
 
 
-def summary(command: Callable[..., int]) -> str:
-    """The first line of a command's docstring, without its full stop: its line in a list of commands."""
-    return (command.__doc__ or "").strip().splitlines()[0].rstrip(".")
-
-
-def size(width: int, height: int) -> str:
-    return f"{width}x{height}"
+def check_output(path: Path, allowed: Sequence[str], what: str) -> str:
+    """Fail early (before any work) on an output file that cannot be right; returns its lower-case suffix."""
+    suffix = path.suffix.lower()
+    if suffix not in allowed:
+        raise InputError(f"unsupported {what} extension {suffix or '(none)'!r}; use {' or '.join(allowed)}",
+                         file=path)
+    if path.is_dir():
+        raise InputError("is a directory", file=path)
+    return suffix
 
 
 # ------------------------------------------------------------------------------------------------- main
 
 
 def build_app() -> App:
-    # The command modules import torch-heavy names inside the commands, so `bcf --help`, `--version` and
-    # argument errors never load torch.
+    # The command modules import torch-heavy names inside the commands: `bcf --help`, `--version` and argument
+    # errors never load torch.
     from bcf import batch_cli, bc6h_cli, material_cli, preview_cli, service_cli
 
-    # Plain text for the top page (its list of bc6h commands keeps its lines); Markdown for the commands' own
+    def summary(command: Callable[..., int]) -> str:
+        return (command.__doc__ or "").strip().splitlines()[0].rstrip(".")
+
+    # Plain text for the top page, so its list of bc6h commands keeps its lines; Markdown for the commands' own
     # pages, so their docstrings' paragraphs are re-wrapped to the terminal.
     app = App(name="bcf", version=f"bcf {__version__}", version_flags=["--version"], help_format="plaintext",
               suppress_keyboard_interrupt=False,  # main() says what the command kept
@@ -100,12 +96,12 @@ def build_app() -> App:
         bc6h.command(command)
     app.command(bc6h)
     for parent, prog in ((app, "bcf"), (bc6h, "bcf bc6h")):
-        parent.default(_command_missing(prog))
+        parent.default(_no_command(prog))
     return app
 
 
-def _command_missing(prog: str) -> Callable[..., int]:
-    """The default of a group of commands: runs when no command (or an unknown word) follows `prog`."""
+def _no_command(prog: str) -> Callable[..., int]:
+    """What runs when no command, or an unknown word, follows `prog`."""
     def missing(*words: Annotated[str, Parameter(show=False)]) -> int:
         problem = f"unknown command {words[0]!r}" if words else "the following arguments are required: COMMAND"
         raise InputError(f"{problem} (see '{prog} --help')")
@@ -113,7 +109,7 @@ def _command_missing(prog: str) -> Callable[..., int]:
 
 
 def _invalid(exc: pydantic.ValidationError) -> str:
-    """A model's validation errors, naming each field by its flag; a validator's own message is kept whole."""
+    """A model's validation errors, each naming its flag; a validator's own message is kept whole."""
     return "; ".join(f"{flags([str(e['loc'][-1])])}: {e['ctx']['error'] if e['type'] == 'value_error' else e['msg']}"
                      for e in exc.errors())
 
@@ -141,6 +137,6 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except (CycloptsError, InputError, OSError, pydantic.ValidationError) as exc:
         print(f"bcf: error: {_message(exc)}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt as exc:  # a command may say what was kept: KeyboardInterrupt("...")
+    except KeyboardInterrupt as exc:  # a command may say what it kept: KeyboardInterrupt("...")
         print("bcf: interrupted" + (f"; {exc}" if exc.args else ""), file=sys.stderr)
         return 130
