@@ -27,7 +27,7 @@ OptionalOutput = Annotated[Optional[Path], Parameter(name=["-o", "--output"])]
 Quiet = Annotated[bool, Parameter(name=["-q", "--quiet"], help="no progress display")]
 
 
-def model_flags(*fields: str, group: Optional[Group] = None) -> Parameter:
+def model_flags(*fields: str, group: Group | str = "Parameters") -> Parameter:
     """Flatten a pydantic-model parameter into one flag per field of `fields`; its other fields keep the
     model's defaults. The parameter must be named `options` or `files`: cyclopts matches the `parse`
     pattern against the parameter's own name as well as each field's."""
