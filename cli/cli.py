@@ -1,285 +1,127 @@
-"""The `bcf` command line: a thin layer over `bcf.core` (argument parsing, messages, exit codes).
+"""The `bcf` command line: a thin layer over `bcf.core` (and `bcf.jobs`, `bcf.service`, `bcf.engine`).
 
-Exit codes: 0 success, 2 user error (bad arguments, missing or unreadable input, malformed container, an
-output that cannot be written), 130 interrupted. User errors print one line `bcf: error: ...` on stderr.
+Each command is a typed function whose signature cyclopts turns into flags; its docstring is its help. Options
+the library's pydantic models define (`JobOptions`, `MaterialFiles`) are not declared again: a parameter of the
+model's type, annotated with `model_flags(...)`, becomes one flag per named field, with the field's type,
+default, choices, constraints and description.
+
+Exit codes: 0 success, 1 `check` found something worse or `batch` had failures, 2 user error (one line
+`bcf: error: ...` on stderr), 130 interrupted.
 """
 
 from __future__ import annotations
 
-import argparse
-import os
+import re
 import sys
-import time
-from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Iterator, NoReturn, Optional, Sequence
+from typing import Annotated, Callable, Optional, Sequence
 
-from bcf import __version__
-from bcf import batch_cli, material_cli, preview_cli, service_cli
-from bcf.core.codec import containers
-from bcf.core.errors import InputError
-from bcf.core.material import images
+import pydantic
+from cyclopts import App, CycloptsError, Group, Parameter
+from cyclopts.argument import ArgumentCollection
 
-if TYPE_CHECKING:
-    import numpy as np
+from bcf.core import InputError, __version__
 
-# `bcf.core.bc6h` imports torch (about 1.5 s), so the commands import it when they run; `--help`,
-# `--version` and argument errors stay instant. `images` and `containers` only need numpy and OIIO.
-
-CONTAINER_WRITERS = {".dds": "DDS", ".ktx2": "KTX2"}
-
-# (command words, one-line description): shown in `bcf --help` and used as each sub-command's help.
-COMMANDS = {
-    "encode": "compress an image (EXR, PNG, JPEG, ...) to a mipmapped BC6H texture (.dds or .ktx2)",
-    "decode": "decode one mip level of a BC6H texture to an image (.exr or .png)",
-    "info": "describe a BC6H texture: container, format, levels and the block modes of level 0",
-}
+Output = Annotated[Path, Parameter(name=["-o", "--output"])]
+OptionalOutput = Annotated[Optional[Path], Parameter(name=["-o", "--output"])]
+Quiet = Annotated[bool, Parameter(name=["-q", "--quiet"], help="no progress display")]
 
 
-class UserError(Exception):
-    """A problem with the user's input or arguments: reported as `bcf: error: <message>`, exit code 2."""
+def model_flags(*fields: str, group: Group | str = "Parameters") -> Parameter:
+    """Flatten a pydantic-model parameter into one flag per field of `fields`; its other fields keep the
+    model's defaults. The parameter must be named `options` or `files`: cyclopts matches the `parse`
+    pattern against the parameter's own name as well as each field's."""
+    return Parameter(name="*", group=group, parse=re.compile(rf"^(options|files|{'|'.join(fields)})$"))
 
 
-class _Parser(argparse.ArgumentParser):
-    """ArgumentParser whose errors become UserError, so they get the same one-line format as every other error."""
-
-    def error(self, message: str) -> NoReturn:
-        raise UserError(f"{message} (see '{self.prog} --help')")
-
-
-# ------------------------------------------------------------------------------------------------ parser
+def _one_at_most(arguments: ArgumentCollection) -> None:
+    given = [argument.name for argument in arguments if argument.tokens]
+    if len(given) > 1:
+        raise ValueError(f"{given[1]} not allowed with {given[0]}")
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
-    return value
+# A command's options that exclude each other (`--levels`/`--no-mips`, `--mip`/`--all-mips`).
+EXCLUSIVE = Group("", validator=_one_at_most, show=False)
 
 
-def _non_negative_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {value}")
-    return value
+def flags(names: Sequence[str]) -> str:
+    """Option names as the models spell them (`normal_convention`) -> flags (`--normal-convention`)."""
+    return "/".join("--" + name.replace("_", "-") for name in names)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The full `bcf` argument parser; each leaf command stores its handler in `handler`."""
-    epilog = "bc6h commands:\n" + "\n".join(f"  bc6h {name:<8} {text}" for name, text in COMMANDS.items())
-    parser = _Parser(prog="bcf", description="Neural block-compressed features (BC6H) for PBR materials.",
-                     epilog=epilog, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--version", action="version", version=f"bcf {__version__}")
-    groups = parser.add_subparsers(title="commands", metavar="COMMAND", dest="group", required=True)
-    material_cli.add_commands(groups, UserError, _positive_int, _non_negative_int)
-    batch_cli.add_commands(groups, UserError, _positive_int, _non_negative_int)
-    service_cli.add_commands(groups, UserError, _positive_int, _non_negative_int)
-    preview_cli.add_commands(groups, UserError, _positive_int, _non_negative_int)
-    bc6h = groups.add_parser("bc6h", help="BC6H textures: encode, decode, info",
-                             description="BC6H (HDR, 3 channels, 8 bits per texel) textures in DDS or KTX2.")
-    commands = bc6h.add_subparsers(title="commands", metavar="COMMAND", dest="command", required=True)
-    _add_encode(commands)
-    _add_decode(commands)
-    _add_info(commands)
-    return parser
+def say(message: str = "") -> None:
+    print(message, flush=True)  # flush: progress should show while the next step runs
 
 
-def _add_encode(commands: argparse._SubParsersAction) -> None:
-    p = commands.add_parser("encode", help=COMMANDS["encode"], description=COMMANDS["encode"] + ".")
-    p.add_argument("image", metavar="IMAGE", help="input image; channels as stored, no colour conversion")
-    p.add_argument("-o", "--output", metavar="OUT", required=True, help="output texture: .dds or .ktx2")
-    p.add_argument("--mode", type=int, choices=(10, 11), default=10,
-                   help="BC6H mode: 10 = two regions, 6-bit endpoints, 3-bit indices; "
-                        "11 = one region, 10-bit endpoints, 4-bit indices (default: 10)")
-    p.add_argument("--signed", action="store_true", help="BC6H_SF16 (keeps negative values); default BC6H_UF16")
-    mips = p.add_mutually_exclusive_group()
-    mips.add_argument("--levels", type=_positive_int, metavar="N", help="number of mip levels (default: all)")
-    mips.add_argument("--no-mips", action="store_true", help="level 0 only")
-    p.add_argument("--verify", action="store_true",
-                   help="read the file back, decode every level and print PSNR and max error per level")
-    p.set_defaults(handler=_encode)
+def clock(seconds: float) -> str:
+    seconds = int(round(max(seconds, 0.0)))
+    return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
 
 
-def _add_decode(commands: argparse._SubParsersAction) -> None:
-    p = commands.add_parser("decode", help=COMMANDS["decode"], description=COMMANDS["decode"] + ".")
-    p.add_argument("file", metavar="FILE", help="BC6H texture (.dds or .ktx2, detected by content)")
-    p.add_argument("-o", "--output", metavar="OUT", required=True,
-                   help=".exr (half float, exact) or .png (16-bit, clamped to [0, 1])")
-    p.add_argument("--level", type=_non_negative_int, default=0, metavar="N", help="mip level (default: 0)")
-    p.set_defaults(handler=_decode)
-
-
-def _add_info(commands: argparse._SubParsersAction) -> None:
-    p = commands.add_parser("info", help=COMMANDS["info"], description=COMMANDS["info"] + ".")
-    p.add_argument("file", metavar="FILE", help="BC6H texture (.dds or .ktx2, detected by content)")
-    p.set_defaults(handler=_info)
-
-
-# ---------------------------------------------------------------------------------------------- helpers
-
-
-def _warn(message: str) -> None:
-    print(f"bcf: warning: {message}", file=sys.stderr)
-
-
-def _say(message: str) -> None:
-    print(message, flush=True)  # flush: progress should show while the next level is being encoded
-
-
-def _check_output(path: Path, allowed: Sequence[str], what: str) -> str:
-    """Fail early (before any work) on an output path that cannot be right; returns its lower-case suffix."""
+def check_output(path: Path, allowed: Sequence[str], what: str) -> str:
+    """Fail early (before any work) on an output file that cannot be right; returns its lower-case suffix."""
     suffix = path.suffix.lower()
     if suffix not in allowed:
-        raise UserError(f"{path}: unsupported {what} extension {suffix or '(none)'!r}; use {' or '.join(allowed)}")
+        raise InputError(f"unsupported {what} extension {suffix or '(none)'!r}; use {' or '.join(allowed)}",
+                         file=path)
     if path.is_dir():
-        raise UserError(f"{path}: is a directory")
+        raise InputError("is a directory", file=path)
     return suffix
-
-
-@contextmanager
-def _atomic_output(path: Path) -> Iterator[Path]:
-    """Yield a temporary path beside `path`; move it onto `path` only if the block succeeds.
-
-    A failed or interrupted write then never leaves a partial file under the requested name. The temporary
-    name keeps the suffix because OpenImageIO picks the image format by extension.
-    """
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.name}.tmp-{os.getpid()}{path.suffix}")
-    try:
-        yield temporary
-        os.replace(temporary, path)
-    finally:
-        temporary.unlink(missing_ok=True)
-
-
-def _size(width: int, height: int) -> str:
-    return f"{width}x{height}"
-
-
-def _levels(count: int) -> str:
-    return f"{count} level" + ("s" if count != 1 else "")
-
-
-def _read_texture(path: str) -> containers.BC6HTexture:
-    if not Path(path).exists():
-        raise UserError(f"{path}: no such file")
-    if not Path(path).is_file():
-        raise UserError(f"{path}: not a regular file")
-    return containers.read_texture(path)
-
-
-def _level_table(texture: containers.BC6HTexture) -> list[str]:
-    lines = [f"  {'level':>5}  {'size':>11}  {'blocks':>8}  {'bytes':>10}"]
-    for i, blocks in enumerate(texture.levels):
-        lines.append(f"  {i:>5}  {_size(*texture.level_size(i)):>11}  {blocks.shape[0] * blocks.shape[1]:>8}"
-                     f"  {blocks.nbytes:>10}")
-    return lines
-
-
-# --------------------------------------------------------------------------------------------- commands
-
-
-def _encode(args: argparse.Namespace) -> int:
-    output = Path(args.output)
-    container = CONTAINER_WRITERS[_check_output(output, tuple(CONTAINER_WRITERS), "texture")]
-    source = images.read_rgb(args.image)
-    height, width = source.shape[:2]
-    full = containers.full_mip_count(width, height)
-    count = 1 if args.no_mips else (args.levels or full)
-    if count > full:
-        raise UserError(f"--levels {count}: {args.image} is {_size(width, height)}, which has at most {full} "
-                        "mip levels")
-    from bcf.core.codec import textures as bc6h_tools  # after the cheap checks: bad input fails without loading torch
-
-    image, problems = bc6h_tools.to_bc6h_range(source, args.signed)
-    for problem in problems:
-        _warn(f"{args.image}: {problem}")
-    fmt = bc6h_tools.format_name(args.signed)
-    _say(f"encoding {args.image} ({_size(width, height)}) as {fmt} mode {args.mode}, {_levels(count)}")
-    start = time.perf_counter()
-    mips = images.mip_chain(image, count)
-
-    def progress(level: int, blocks: "np.ndarray", seconds: float) -> None:
-        h, w = mips[level].shape[:2]
-        _say(f"  level {level}: {_size(w, h):>11}  {blocks.shape[0] * blocks.shape[1]:>7} blocks  {seconds:6.2f} s")
-
-    texture = bc6h_tools.encode_mips(mips, args.mode, args.signed, on_level=progress)
-    writer = containers.write_dds if container == "DDS" else containers.write_ktx2
-    with _atomic_output(output) as temporary:
-        writer(temporary, texture)
-    elapsed = time.perf_counter() - start
-    data = sum(level.nbytes for level in texture.levels)
-    _say(f"wrote {output}: {container} {fmt}, {_size(width, height)}, {_levels(count)}, mode {args.mode}, "
-         f"{output.stat().st_size} bytes ({data} of blocks), {elapsed:.2f} s")
-    if args.verify:
-        _print_verification(output, mips)
-    return 0
-
-
-def _print_verification(path: Path, mips: Sequence["np.ndarray"]) -> None:
-    """Read `path` back and print the per-level quality against the encoder's input mips."""
-    from bcf.core.codec import textures as bc6h_tools
-
-    checks = bc6h_tools.verify_texture(containers.read_texture(path), mips)
-    _say(f"verify {path} (decoded vs. source mip; PSNR peak = max(1, source max)):")
-    _say(f"  {'level':>5}  {'size':>11}  {'PSNR (dB)':>9}  {'max abs err':>11}")
-    for check in checks:
-        _say(f"  {check.level:>5}  {_size(check.width, check.height):>11}  {check.psnr_db:>9.2f}"
-             f"  {check.max_abs_error:>11.4g}")
-
-
-def _decode(args: argparse.Namespace) -> int:
-    output = Path(args.output)
-    suffix = _check_output(output, tuple(images.WRITE_EXTENSIONS), "image")
-    texture = _read_texture(args.file)
-    if args.level >= len(texture.levels):
-        raise UserError(f"{args.file}: --level {args.level} does not exist; the file has levels "
-                        f"0..{len(texture.levels) - 1}")
-    from bcf.core.codec import bc6h
-
-    width, height = texture.level_size(args.level)
-    decoded = bc6h.decode_image(texture.levels[args.level], width, height, texture.signed)
-    if suffix == ".png" and (decoded.min() < 0 or decoded.max() > 1):
-        _warn(f"{output}: PNG holds [0, 1]; values in [{float(decoded.min()):g}, {float(decoded.max()):g}] "
-              "are clamped (use .exr to keep them)")
-    with _atomic_output(output) as temporary:
-        images.write_rgb(temporary, decoded)
-    _say(f"wrote {output}: level {args.level} ({_size(width, height)}) of {args.file}")
-    return 0
-
-
-def _info(args: argparse.Namespace) -> int:
-    texture = _read_texture(args.file)
-    from bcf.core.codec import textures as bc6h_tools  # after the cheap checks: bad input fails without loading torch
-
-    histogram = bc6h_tools.mode_histogram(texture.levels[0])
-    total = sum(histogram.values())
-    lines = [
-        f"file:      {args.file} ({Path(args.file).stat().st_size} bytes)",
-        f"container: {bc6h_tools.container_kind(args.file)}",
-        f"format:    {bc6h_tools.format_name(texture.signed)}",
-        f"size:      {_size(texture.width, texture.height)}",
-        f"levels:    {len(texture.levels)}",
-        *_level_table(texture),
-        "level 0 block modes:",
-    ]
-    for mode, count in histogram.items():
-        label = "reserved" if mode == "reserved" else f"mode {mode}"
-        lines.append(f"  {label}: {count} blocks ({100.0 * count / total:.1f} %)")
-    _say("\n".join(lines))
-    return 0
 
 
 # ------------------------------------------------------------------------------------------------- main
 
 
-def _error_message(exc: BaseException) -> str:
+def build_app() -> App:
+    # The command modules import torch-heavy names inside the commands: `bcf --help`, `--version` and argument
+    # errors never load torch.
+    from bcf import batch_cli, bc6h_cli, material_cli, preview_cli, service_cli
+
+    def summary(command: Callable[..., int]) -> str:
+        return (command.__doc__ or "").strip().splitlines()[0].rstrip(".")
+
+    # Plain text for the top page, so its list of bc6h commands keeps its lines; Markdown for the commands' own
+    # pages, so their docstrings' paragraphs are re-wrapped to the terminal.
+    app = App(name="bcf", version=f"bcf {__version__}", version_flags=["--version"], help_format="plaintext",
+              suppress_keyboard_interrupt=False,  # main() says what the command kept
+              # no generated --no-FLAG for each flag, and no "[default: False]" on flags
+              default_parameter=Parameter(negative=(), show_default=lambda value: None if value is False else value),
+              help="Neural block-compressed features (BC6H) for PBR materials.\n\nbc6h commands:\n" +
+                   "\n".join(f"  bc6h {c.__name__:<8} {summary(c)}" for c in bc6h_cli.COMMANDS))
+    for module in (material_cli, preview_cli, batch_cli, service_cli):
+        for command in module.COMMANDS:
+            app.command(command, help_format="markdown")
+    bc6h = App(name="bc6h", help="BC6H textures: encode, decode, info", help_format="markdown")
+    for command in bc6h_cli.COMMANDS:
+        bc6h.command(command)
+    app.command(bc6h)
+    for parent, prog in ((app, "bcf"), (bc6h, "bcf bc6h")):
+        parent.default(_no_command(prog))
+    return app
+
+
+def _no_command(prog: str) -> Callable[..., int]:
+    """What runs when no command, or an unknown word, follows `prog`."""
+    def missing(*words: Annotated[str, Parameter(show=False)]) -> int:
+        problem = f"unknown command {words[0]!r}" if words else "the following arguments are required: COMMAND"
+        raise InputError(f"{problem} (see '{prog} --help')")
+    return missing
+
+
+def _invalid(exc: pydantic.ValidationError) -> str:
+    """A model's validation errors, each naming its flag; a validator's own message is kept whole."""
+    return "; ".join(f"{flags([str(e['loc'][-1])])}: {e['ctx']['error'] if e['type'] == 'value_error' else e['msg']}"
+                     for e in exc.errors())
+
+
+def _message(exc: BaseException) -> str:
+    if isinstance(exc, CycloptsError):
+        text = _invalid(exc.__cause__) if isinstance(exc.__cause__, pydantic.ValidationError) else str(exc)
+        return f"{text} (see '{' '.join(['bcf', *(exc.command_chain or ())])} --help')"
+    if isinstance(exc, pydantic.ValidationError):
+        return _invalid(exc)
+    if isinstance(exc, InputError):
+        return exc.message(options=flags)
     if isinstance(exc, OSError) and exc.strerror:
         return f"{exc.filename}: {exc.strerror}" if exc.filename else exc.strerror
     return str(exc)
@@ -287,19 +129,14 @@ def _error_message(exc: BaseException) -> str:
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     """Run `bcf` with `argv` (default: sys.argv[1:]) and return the exit code."""
-    # Errors the user can fix; anything else is a bug in bcf and keeps its traceback.
-    user_errors: tuple[type[BaseException], ...] = (
-        UserError, OSError, InputError)
     try:
-        args = build_parser().parse_args(argv)
-        handler: Callable[[argparse.Namespace], int] = args.handler
-        return handler(args)
-    except SystemExit as exc:  # --help and --version end through parser.exit()
-        return exc.code if isinstance(exc.code, int) else 0
-    except user_errors as exc:
-        print(f"bcf: error: {material_cli.cli_message(exc) if isinstance(exc, InputError) else _error_message(exc)}",
-              file=sys.stderr)
+        code = build_app()(list(sys.argv[1:] if argv is None else argv), exit_on_error=False, print_error=False,
+                           result_action="return_value")
+        return code or 0  # --help and --version return None
+    # Errors the user can fix; anything else is a bug in bcf and keeps its traceback.
+    except (CycloptsError, InputError, OSError, pydantic.ValidationError) as exc:
+        print(f"bcf: error: {_message(exc)}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("bcf: interrupted", file=sys.stderr)
+    except KeyboardInterrupt as exc:  # a command may say what it kept: KeyboardInterrupt("...")
+        print("bcf: interrupted" + (f"; {exc}" if exc.args else ""), file=sys.stderr)
         return 130
