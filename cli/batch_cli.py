@@ -152,9 +152,6 @@ def batch(assets_dir: Path, /, *, output: OptionalOutput = None,
             not be placed
         as_json: with --list: print it as JSON for scripts
         options.device: local runs only
-        options.phase1_iterations: iterations with unconstrained features (default: the preset's)
-        options.phase2_iterations: iterations with BC6H block features (default: the preset's)
-        options.batch_size: samples per iteration (default: the preset's)
         jobs: materials compressed at once, in separate processes sharing the cores
         force: recompress materials that are up to date
         submit: send the materials to a bcf service (bcf serve) at this URL and download the results instead

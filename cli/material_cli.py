@@ -95,13 +95,6 @@ def compress(material_dir: Optional[Path] = None, /, *, output: Output,
     Args:
         material_dir: folder with the material's textures, found by common naming (Poly Haven, ambientCG, ...)
         output: output folder (created)
-        options.device: where to train
-        options.seed: random seed
-        options.hidden: MLP hidden width (default: the preset's)
-        options.block_mode: BC6H mode of the feature blocks (default: the preset's)
-        options.phase1_iterations: iterations with unconstrained features (default: the preset's)
-        options.phase2_iterations: iterations with BC6H block features (default: the preset's)
-        options.batch_size: samples per iteration (default: the preset's)
         baselines: also encode and score conventional codecs into report.json/report.html and OUT/baselines/:
             all (the default when no LIST is given), or a comma-separated list of bc, astc, naive and names
             such as bc1_bc5_full, astc_12x12_half, naive_bc6
@@ -196,7 +189,6 @@ def bench(materials_dir: Path, /, *, output: Output,
     Args:
         materials_dir: folder of material folders (with an index.json naming the roles, or found by file names)
         output: output folder (created)
-        options.device: where to train
         features: comma-separated feature sizes
         baselines: baselines as for 'bcf compress --baselines', or none
         max_size: box-filter larger materials down to at most N texels a side first (quicker benchmarks)

@@ -83,19 +83,22 @@ class CompressOptions(BaseModel):
     features: FeatureSize = Field("1k", description="T0 at W/4 (0.5k), W/2 (1k) or W (2k)")
     address: Address = Field(
         "wrap", description="texture addressing: wrap for tiling materials, clamp for UV atlases")
-    device: Device = "cpu"
-    seed: int = Field(0, ge=0)
-    phase1_iterations: Optional[int] = Field(None, ge=0)
-    phase2_iterations: Optional[int] = Field(None, ge=0)
-    batch_size: Optional[int] = Field(None, ge=256)
+    device: Device = Field("cpu", description="where to train")
+    seed: int = Field(0, ge=0, description="random seed")
+    phase1_iterations: Optional[int] = Field(None, ge=0, description="iterations with unconstrained features "
+                                             "(default: the preset's)")
+    phase2_iterations: Optional[int] = Field(None, ge=0, description="iterations with BC6H block features "
+                                             "(default: the preset's)")
+    batch_size: Optional[int] = Field(None, ge=256, description="samples per iteration (default: the preset's)")
     lr_features_phase1: Optional[float] = Field(None, gt=0)
     lr_mlp_phase1: Optional[float] = Field(None, gt=0)
     decay_phase1: Optional[float] = Field(None, gt=0, le=1)
     lr_features_phase2: Optional[float] = Field(None, gt=0)
     lr_mlp_phase2: Optional[float] = Field(None, gt=0)
     decay_phase2: Optional[float] = Field(None, gt=0, le=1)
-    hidden: Optional[Literal[16, 32]] = None
-    block_mode: Optional[Literal[10, 11]] = None
+    hidden: Optional[Literal[16, 32]] = Field(None, description="MLP hidden width (default: the preset's)")
+    block_mode: Optional[Literal[10, 11]] = Field(None, description="BC6H mode of the feature blocks (default: "
+                                                  "the preset's)")
 
 
 class JobOptions(CompressOptions):

@@ -48,12 +48,12 @@ class MaterialFiles(pydantic.BaseModel):
 
     model_config = pydantic.ConfigDict(extra="forbid")
 
-    albedo: Path | None = None
-    normal: Path | None = None
-    arm: Path | None = None
-    ao: Path | None = None
-    roughness: Path | None = None
-    metalness: Path | None = None
+    albedo: Path | None = pydantic.Field(None, description="base colour (sRGB-encoded RGB)")
+    normal: Path | None = pydantic.Field(None, description="tangent-space normal map (x, y used; z rebuilt)")
+    arm: Path | None = pydantic.Field(None, description="packed AO (R), roughness (G), metalness (B)")
+    ao: Path | None = pydantic.Field(None, description="ambient occlusion, grey (default: 1)")
+    roughness: Path | None = pydantic.Field(None, description="roughness, grey")
+    metalness: Path | None = pydantic.Field(None, description="metalness, grey (default: 0)")
     normal_convention: NormalConvention | None = None  # None: unknown (load assumes opengl and adds a note)
     ignored: list[Path] = []  # files found in the folder that play no role (height, opacity, ...)
     notes: list[str] = []  # choices discovery made, to show the user
