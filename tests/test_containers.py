@@ -315,31 +315,23 @@ KTX2_CASES: dict[str, tuple[Mutation, str]] = {
 }
 
 
-@pytest.mark.parametrize("case", sorted(DDS_CASES))
-def test_malformed_dds(tmp_path: Path, case: str) -> None:
-    mutate, problem = DDS_CASES[case]
-    good = tmp_path / "good.dds"
-    write_dds(good, random_texture(1, 64, 32, False))
-    bad = tmp_path / f"{case}.dds"
+# Per container: its cases, writer, reader, and the cases whose file read_texture cannot attribute to a format.
+CONTAINERS = {".dds": (DDS_CASES, write_dds, read_dds, ("wrong_magic", "empty", "cut_in_magic")),
+              ".ktx2": (KTX2_CASES, write_ktx2, read_ktx2, ("ktx1_identifier", "empty", "cut_in_identifier"))}
+
+
+@pytest.mark.parametrize("suffix, case", [(suffix, case) for suffix, (cases, *_) in CONTAINERS.items()
+                                          for case in sorted(cases)])
+def test_malformed_container(tmp_path: Path, suffix: str, case: str) -> None:
+    cases, write, read, unattributable = CONTAINERS[suffix]
+    mutate, problem = cases[case]
+    good = tmp_path / f"good{suffix}"
+    write(good, random_texture(1 if suffix == ".dds" else 2, 64, 32, False))
+    bad = tmp_path / f"{case}{suffix}"
     bad.write_bytes(mutate(bytearray(good.read_bytes())))
-    for reader in (read_dds, read_texture):
-        if reader is read_texture and case in ("wrong_magic", "empty", "cut_in_magic"):
+    for reader in (read, read_texture):
+        if reader is read_texture and case in unattributable:
             continue  # read_texture cannot tell which format such a file was meant to be
-        with pytest.raises(ContainerError, match=problem) as info:
-            reader(bad)
-        assert str(bad) in str(info.value)
-
-
-@pytest.mark.parametrize("case", sorted(KTX2_CASES))
-def test_malformed_ktx2(tmp_path: Path, case: str) -> None:
-    mutate, problem = KTX2_CASES[case]
-    good = tmp_path / "good.ktx2"
-    write_ktx2(good, random_texture(2, 64, 32, False))
-    bad = tmp_path / f"{case}.ktx2"
-    bad.write_bytes(mutate(bytearray(good.read_bytes())))
-    for reader in (read_ktx2, read_texture):
-        if reader is read_texture and case in ("ktx1_identifier", "empty", "cut_in_identifier"):
-            continue
         with pytest.raises(ContainerError, match=problem) as info:
             reader(bad)
         assert str(bad) in str(info.value)
