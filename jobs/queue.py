@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import datetime
 import shutil
+import tempfile
+import zipfile
 from pathlib import Path
 from typing import Callable, Optional
 
@@ -20,35 +22,29 @@ from bcf.jobs.records import Job, utc_now
 from bcf.jobs.settings import Settings
 from bcf.jobs.store import JobStore, open_store
 
-__all__ = ["JobQueue", "RUN_JOB_TASK", "make_huey"]
+__all__ = ["JobQueue", "RUN_JOB_TASK"]
 
 RUN_JOB_TASK = "bcf.run_job"
 JobRunner = Callable[[str], None]
 
 
-def make_huey(settings: Settings) -> Huey:
-    """RedisHuey on BCF_QUEUE_URL, else SqliteHuey in the data directory. No result store: results are files."""
-    if settings.queue_url:
-        return RedisHuey("bcf", url=settings.queue_url, results=False)
-    settings.data_dir.mkdir(parents=True, exist_ok=True)
-    return SqliteHuey("bcf", filename=str(settings.data_dir / "queue.db"), results=False)
+def _submitting_only(job_id: str) -> None:
+    raise RuntimeError("this process only submits jobs; run them with 'bcf worker'")
 
 
 class JobQueue:
     """Submit, cancel and recover jobs. `runner` is the function a worker runs for a job id (None in the API)."""
 
-    def __init__(self, settings: Settings, runner: Optional[JobRunner] = None,
-                 store: Optional[JobStore] = None):
+    def __init__(self, settings: Settings, runner: Optional[JobRunner] = None):
         self.settings = settings
-        self.store = store or open_store(settings)
-        self.huey = make_huey(settings)
-
-        def run_job(job_id: str) -> None:
-            if runner is None:
-                raise RuntimeError("this process only submits jobs; run them with 'bcf worker'")
-            runner(job_id)
-
-        self._task = self.huey.task(name=RUN_JOB_TASK)(run_job)
+        self.store: JobStore = open_store(settings)
+        # RedisHuey on BCF_QUEUE_URL, else SqliteHuey in the data directory; no result store: results are files.
+        if settings.queue_url:
+            self.huey: Huey = RedisHuey("bcf", url=settings.queue_url, results=False)
+        else:
+            settings.data_dir.mkdir(parents=True, exist_ok=True)
+            self.huey = SqliteHuey("bcf", filename=str(settings.data_dir / "queue.db"), results=False)
+        self._task = self.huey.task(name=RUN_JOB_TASK)(runner or _submitting_only)
 
     def enqueue(self, job_id: str) -> None:
         self._task(job_id)
@@ -65,8 +61,7 @@ class JobQueue:
         into `cancelled` within a heartbeat. Final jobs are returned unchanged."""
         def change(job: Job) -> Optional[Job]:
             if job.state == "queued":
-                return job.model_copy(update={"state": "cancelled", "finished_at": utc_now(),
-                                              "progress": job.progress.model_copy(update={"stage": "cancelled"})})
+                return job.ended("cancelled")
             if job.state == "running" and not job.cancel_requested:
                 return job.model_copy(update={"cancel_requested": True})
             return None
@@ -107,21 +102,31 @@ class JobQueue:
                 return None  # it moved on, or a heartbeat arrived meanwhile
             lost = f"its worker {job.worker} stopped responding (attempt {job.attempts})"
             if job.cancel_requested:
-                return job.model_copy(update={"state": "cancelled", "finished_at": utc_now(), "error": lost})
+                return job.ended("cancelled", error=lost)
             if job.attempts >= self.settings.max_attempts:
-                return job.model_copy(update={
-                    "state": "failed", "finished_at": utc_now(),
-                    "error": f"gave up after {job.attempts} attempts: {lost}",
-                    "progress": job.progress.model_copy(update={"stage": "failed"})})
-            return job.model_copy(update={"state": "queued", "worker": None, "error": None,
-                                          "progress": job.progress.model_copy(update={"stage": "queued"})})
+                return job.ended("failed", error=f"gave up after {job.attempts} attempts: {lost}")
+            return job.requeued()
         return change
 
     def artifacts_path(self, job_id: str) -> Path:
-        return self.settings.artifacts_dir / job_id
+        return self.settings.data_dir / "artifacts" / job_id
 
     def inputs_path(self, job_id: str) -> Path:
-        return self.settings.inputs_dir / job_id
+        return self.settings.data_dir / "inputs" / job_id
+
+    def pack_artifacts(self, job: Job, folder: Path) -> Path:
+        """Every result file of `job` (its `result.artifacts`) in one zip: a new file in `folder` that the caller
+        removes once it is sent (result folders are not kept zipped: that would store every result twice)."""
+        folder.mkdir(parents=True, exist_ok=True)
+        handle = tempfile.NamedTemporaryFile(dir=folder, prefix="download-", suffix=".zip", delete=False)
+        try:
+            with handle, zipfile.ZipFile(handle, "w", zipfile.ZIP_DEFLATED) as archive:
+                for name in job.result.artifacts if job.result else []:
+                    archive.write(self.artifacts_path(job.id) / name, name)
+        except BaseException:
+            Path(handle.name).unlink(missing_ok=True)
+            raise
+        return Path(handle.name)
 
     def remove_partial_outputs(self, job_id: str) -> None:
         """Staging folders a killed worker left for this job's artifacts."""

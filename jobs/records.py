@@ -1,18 +1,19 @@
-"""The job record: what the API returns, what workers update, what the stores keep (as JSON)."""
+"""The stored job record: what the submitter creates, workers update and the stores keep (as JSON).
+
+It holds bookkeeping clients do not need (attempts, the worker, the input key, stored paths); the HTTP service
+answers with a public view of it instead."""
 
 from __future__ import annotations
 
 import datetime
-import hashlib
-import json
-from typing import Literal, Optional, Sequence, get_args
+from typing import Literal, Optional, get_args
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from bcf.core import JobOptions, ResultIdentity
+from bcf.core import JobOptions, Role
 
-__all__ = ["FINAL_STATES", "JOB_STATES", "InputFile", "Job", "JobProgress", "JobResult", "JobState", "input_key",
-           "utc_now"]
+__all__ = ["FINAL_STATES", "JOB_STATES", "InputFile", "InputView", "Job", "JobProgress", "JobResult", "JobState",
+           "JobView", "utc_now"]
 
 JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 JOB_STATES: tuple[JobState, ...] = get_args(JobState)
@@ -39,12 +40,17 @@ class JobProgress(_Model):
     eta_s: Optional[float] = None
 
 
-class InputFile(_Model):
-    role: str
-    name: str = Field(description="the file name the client sent (for display only; stored as <role>.<ext>)")
-    stored_as: str
+class InputView(BaseModel):
+    """An input file as clients see it."""
+
+    role: Role
+    name: str = Field(description="the file name the client sent")
     sha256: str
     bytes: int
+
+
+class InputFile(InputView, _Model):
+    stored_as: str = Field(description="path in the job's inputs folder: <role>/<sanitised file name>")
 
 
 class JobResult(_Model):
@@ -57,26 +63,46 @@ class JobResult(_Model):
     artifacts: list[str] = Field(description="files of the result, relative to the artifact folder")
 
 
-class Job(_Model):
+class JobView(BaseModel):
+    """A job as its submitter sees it (the HTTP API's job object). Unknown fields are ignored, so a client
+    reads a newer server's answers; the stored `Job` adds the bookkeeping no client needs."""
+
     id: str
     state: JobState = "queued"
     name: str = Field(description="material name (zip folder or albedo file stem, sanitised)")
-    options: JobOptions
-    inputs: list[InputFile]
-    input_key: str = Field(description="SHA-256 of the input files and options: equal keys are the same job")
+    options: JobOptions = Field(description="as submitted, with the normal convention the material was loaded with")
+    inputs: list[InputView]
     notes: list[str] = Field(default_factory=list, description="what loading the material noticed (assumed "
                              "normal convention, ignored channels, constants used for missing maps)")
     progress: JobProgress = Field(default_factory=JobProgress)
     error: Optional[str] = None
-    attempts: int = Field(0, description="times a worker started the job")
-    worker: Optional[str] = None
-    cancel_requested: bool = False
     created_at: datetime.datetime = Field(default_factory=utc_now)
     updated_at: datetime.datetime = Field(default_factory=utc_now)
     started_at: Optional[datetime.datetime] = None
-    heartbeat_at: Optional[datetime.datetime] = None
     finished_at: Optional[datetime.datetime] = None
     result: Optional[JobResult] = None
+
+
+class Job(JobView, _Model):
+    """The stored record: the public view and the bookkeeping of the queue, the workers and the inputs."""
+
+    inputs: list[InputFile]
+    input_key: str = Field(description="SHA-256 of the input files and options: equal keys are the same job")
+    attempts: int = Field(0, description="times a worker started the job")
+    worker: Optional[str] = None
+    cancel_requested: bool = False
+    heartbeat_at: Optional[datetime.datetime] = None
+
+    def ended(self, state: JobState, last: Optional[JobProgress] = None, **fields: object) -> "Job":
+        """The job finished in `state`, with its progress (`last` known, else as stored) saying so."""
+        stage, eta = ("finished", 0.0) if state == "succeeded" else (state, None)
+        progress = (last or self.progress).model_copy(update={"stage": stage, "eta_s": eta})
+        return self.model_copy(update={"state": state, "finished_at": utc_now(), "progress": progress, **fields})
+
+    def requeued(self) -> "Job":
+        """Back in the queue for any worker: its worker stopped, died or gave it back."""
+        return self.model_copy(update={"state": "queued", "worker": None, "started_at": None, "error": None,
+                                       "progress": JobProgress(stage="queued")})
 
     @property
     def duration_s(self) -> Optional[float]:
@@ -84,10 +110,3 @@ class Job(_Model):
             return None
         return (self.finished_at - self.started_at).total_seconds()
 
-
-def input_key(identity: ResultIdentity, baselines: Sequence[str]) -> str:
-    """Content hash that identifies a job: what decides its result (`bcf.core.result_identity`: the inputs' bytes
-    by role, the normal convention and size they were loaded with, the resolved options without the device)
-    and the baselines asked for. The name is left out."""
-    keyed = {"result": identity.key(), "baselines": sorted(baselines)}
-    return hashlib.sha256(json.dumps(keyed, sort_keys=True).encode()).hexdigest()

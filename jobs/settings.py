@@ -15,16 +15,12 @@ from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 __all__ = ["Settings"]
 
 
-def _default_data_dir() -> Path:
-    return Path.home() / ".local" / "share" / "bcf"
-
-
 class Settings(BaseSettings):
     """Every setting of `bcf serve` and `bcf worker`; environment variable = BCF_ + the name in capitals."""
 
     model_config = SettingsConfigDict(env_prefix="BCF_", env_file=".env", extra="ignore")
 
-    data_dir: Path = Field(default_factory=_default_data_dir,
+    data_dir: Path = Field(default_factory=lambda: Path.home() / ".local" / "share" / "bcf",
                            description="queue and job databases (embedded mode), uploaded inputs, artifacts")
     api_tokens: Annotated[list[str], NoDecode] = Field(
         default_factory=list, description="comma-separated bearer tokens; none: the API listens on 127.0.0.1 only")
@@ -59,14 +55,6 @@ class Settings(BaseSettings):
         return self.queue_url is not None
 
     @property
-    def inputs_dir(self) -> Path:
-        return self.data_dir / "inputs"
-
-    @property
-    def artifacts_dir(self) -> Path:
-        return self.data_dir / "artifacts"
-
-    @property
     def uploads_dir(self) -> Path:
-        """Staging for requests being validated; emptied of anything older than a request on start."""
+        """Staging of requests being validated and of downloads, each removed once answered."""
         return self.data_dir / "uploads"

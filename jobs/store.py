@@ -40,18 +40,12 @@ class JobStore(Protocol):
              limit: Optional[int] = None) -> tuple[list[Job], int]:
         """(jobs newest first, total matching)."""
 
-    def counts(self) -> dict[str, int]:
-        """Number of jobs in each state (every state present)."""
-
     def ping(self) -> None:
         """Raise StoreUnavailable if the store cannot be used."""
 
 
 def _stamped(job: Job) -> Job:
     return job.model_copy(update={"updated_at": utc_now()})
-
-
-# ------------------------------------------------------------------------------------------------ SQLite
 
 
 class SqliteJobStore:
@@ -68,31 +62,25 @@ class SqliteJobStore:
             db.execute("CREATE INDEX IF NOT EXISTS jobs_key ON jobs (input_key)")
 
     @contextlib.contextmanager
-    def _connect(self) -> Iterator[sqlite3.Connection]:
+    def _connect(self, write: bool = False) -> Iterator[sqlite3.Connection]:
+        """A connection; to `write`, in a transaction that commits only if the block succeeds."""
         try:
             db = sqlite3.connect(self.path, timeout=30.0, isolation_level=None)
         except sqlite3.Error as exc:
             raise StoreUnavailable(f"job database {self.path}: {exc}") from exc
         try:
+            if write:
+                db.execute("BEGIN IMMEDIATE")  # takes the write lock now: no other writer between read and write
             yield db
+            if write:
+                db.execute("COMMIT")  # not reached on an exception: closing rolls the transaction back
         except sqlite3.OperationalError as exc:
             raise StoreUnavailable(f"job database {self.path}: {exc}") from exc
         finally:
             db.close()
 
-    @contextlib.contextmanager
-    def _transaction(self) -> Iterator[sqlite3.Connection]:
-        with self._connect() as db:
-            db.execute("BEGIN IMMEDIATE")  # takes the write lock now: no other writer between read and write
-            try:
-                yield db
-            except BaseException:
-                db.execute("ROLLBACK")
-                raise
-            db.execute("COMMIT")
-
     def add(self, job: Job) -> tuple[Job, bool]:
-        with self._transaction() as db:
+        with self._connect(write=True) as db:
             holding = ",".join("?" * len(_KEY_HOLDING_STATES))
             row = db.execute(f"SELECT data FROM jobs WHERE input_key = ? AND state IN ({holding}) "
                              "ORDER BY created_at DESC LIMIT 1", (job.input_key, *_KEY_HOLDING_STATES)).fetchone()
@@ -108,7 +96,7 @@ class SqliteJobStore:
         return None if row is None else Job.model_validate_json(row[0])
 
     def update(self, job_id: str, change: Change) -> Optional[Job]:
-        with self._transaction() as db:
+        with self._connect(write=True) as db:
             row = db.execute("SELECT data FROM jobs WHERE id = ?", (job_id,)).fetchone()
             if row is None:
                 return None
@@ -131,17 +119,9 @@ class SqliteJobStore:
                               "LIMIT ? OFFSET ?", (*wanted, -1 if limit is None else limit, offset)).fetchall()
         return [Job.model_validate_json(r[0]) for r in rows], total
 
-    def counts(self) -> dict[str, int]:
-        with self._connect() as db:
-            rows = db.execute("SELECT state, COUNT(*) FROM jobs GROUP BY state").fetchall()
-        return {state: 0 for state in JOB_STATES} | dict(rows)
-
     def ping(self) -> None:
         with self._connect() as db:
             db.execute("SELECT 1").fetchone()
-
-
-# ------------------------------------------------------------------------------------------------- Redis
 
 
 class RedisJobStore:
@@ -156,14 +136,9 @@ class RedisJobStore:
         self.client = redis.Redis.from_url(url, socket_timeout=10, socket_connect_timeout=5)
         self.prefix = prefix
 
-    def _job(self, job_id: str) -> str:
-        return f"{self.prefix}:job:{job_id}"
-
-    def _state(self, state: str) -> str:
-        return f"{self.prefix}:state:{state}"
-
-    def _key(self, input_key: str) -> str:
-        return f"{self.prefix}:key:{input_key}"
+    def _name(self, kind: str, of: str) -> str:
+        """The Redis key of a job, a state's index or an input key's holder: <prefix>:<kind>:<of>."""
+        return f"{self.prefix}:{kind}:{of}"
 
     @contextlib.contextmanager
     def _errors(self) -> Iterator[None]:
@@ -184,9 +159,9 @@ class RedisJobStore:
 
     def add(self, job: Job) -> tuple[Job, bool]:
         def body(pipe) -> tuple[Job, bool]:
-            holder = pipe.get(self._key(job.input_key))
+            holder = pipe.get(self._name("key", job.input_key))
             if holder is not None:
-                raw = pipe.get(self._job(holder.decode()))
+                raw = pipe.get(self._name("job", holder.decode()))
                 if raw is not None:
                     existing = Job.model_validate_json(raw)
                     if existing.state in _KEY_HOLDING_STATES:
@@ -194,25 +169,25 @@ class RedisJobStore:
                         return existing, False
             score = job.created_at.timestamp()
             pipe.multi()
-            pipe.set(self._job(job.id), job.model_dump_json())
-            pipe.set(self._key(job.input_key), job.id)
+            pipe.set(self._name("job", job.id), job.model_dump_json())
+            pipe.set(self._name("key", job.input_key), job.id)
             pipe.zadd(f"{self.prefix}:jobs", {job.id: score})
-            pipe.zadd(self._state(job.state), {job.id: score})
+            pipe.zadd(self._name("state", job.state), {job.id: score})
             pipe.execute()
             return job, True
 
         # Watching the key's holder is not enough: its state may change (to failed) meanwhile; that only
         # makes us return a job that just failed, which the client sees and may resubmit.
-        return self._optimistic([self._key(job.input_key)], body)  # type: ignore[return-value]
+        return self._optimistic([self._name("key", job.input_key)], body)  # type: ignore[return-value]
 
     def get(self, job_id: str) -> Optional[Job]:
         with self._errors():
-            raw = self.client.get(self._job(job_id))
+            raw = self.client.get(self._name("job", job_id))
         return None if raw is None else Job.model_validate_json(raw)
 
     def update(self, job_id: str, change: Change) -> Optional[Job]:
         def body(pipe) -> Optional[Job]:
-            raw = pipe.get(self._job(job_id))
+            raw = pipe.get(self._name("job", job_id))
             if raw is None:
                 pipe.unwatch()
                 return None
@@ -223,21 +198,21 @@ class RedisJobStore:
                 return job
             changed = _stamped(changed)
             pipe.multi()
-            pipe.set(self._job(job_id), changed.model_dump_json())
+            pipe.set(self._name("job", job_id), changed.model_dump_json())
             if changed.state != job.state:
-                pipe.zrem(self._state(job.state), job_id)
-                pipe.zadd(self._state(changed.state), {job_id: job.created_at.timestamp()})
+                pipe.zrem(self._name("state", job.state), job_id)
+                pipe.zadd(self._name("state", changed.state), {job_id: job.created_at.timestamp()})
             pipe.execute()
             return changed
 
-        return self._optimistic([self._job(job_id)], body)  # type: ignore[return-value]
+        return self._optimistic([self._name("job", job_id)], body)  # type: ignore[return-value]
 
     def list(self, states: Optional[set[str]] = None, offset: int = 0,
              limit: Optional[int] = None) -> tuple[list[Job], int]:
         with self._errors():
             if states and set(states) != set(JOB_STATES):
                 # Merge the per-state indexes into a temporary one (kept for a few seconds, then expired).
-                keys = [self._state(s) for s in sorted(states)]
+                keys = [self._name("state", s) for s in sorted(states)]
                 index = f"{self.prefix}:tmp:{'+'.join(sorted(states))}"
                 pipe = self.client.pipeline()
                 pipe.zunionstore(index, keys)
@@ -248,15 +223,8 @@ class RedisJobStore:
             total = self.client.zcard(index)
             stop = -1 if limit is None else offset + limit - 1
             ids = [i.decode() for i in self.client.zrevrange(index, offset, stop)] if limit != 0 else []
-            raws = self.client.mget([self._job(i) for i in ids]) if ids else []
+            raws = self.client.mget([self._name("job", i) for i in ids]) if ids else []
         return [Job.model_validate_json(r) for r in raws if r is not None], total
-
-    def counts(self) -> dict[str, int]:
-        with self._errors():
-            pipe = self.client.pipeline()
-            for state in JOB_STATES:
-                pipe.zcard(self._state(state))
-            return dict(zip(JOB_STATES, pipe.execute()))
 
     def ping(self) -> None:
         with self._errors():

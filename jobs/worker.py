@@ -15,33 +15,26 @@ import time
 import traceback
 import uuid
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, Callable, Optional
 
-from bcf.core import (MaterialFiles, TextureSet, TrainingProgress, TrainingStopped, compress_material, load_texture_set,
-                      resolve_options)
+from bcf.core import InputError, TrainingProgress, TrainingStopped, compress_material, resolve_options
 from bcf.jobs.queue import JobQueue
 from bcf.jobs.records import Job, JobProgress, JobResult, utc_now
 from bcf.jobs.settings import Settings
 from bcf.jobs.store import JobStore, StoreUnavailable
+from bcf.jobs.submission import load_job_material
 
-__all__ = ["Worker", "job_result", "load_job_material"]
+__all__ = ["Worker"]
 
 log = logging.getLogger("bcf.worker")
 SHUTDOWN_GRACE_S = 10.0
 
 
-def load_job_material(job: Job, inputs: Path) -> TextureSet:
-    """The job's texture set from its stored inputs (<role>.<ext> in `inputs`)."""
-    files = MaterialFiles(**{f.role: inputs / f.stored_as for f in job.inputs},
-                                   normal_convention=job.options.normal_convention)
-    return load_texture_set(files, name=job.name)
-
-
-def job_result(folder: Path, report) -> JobResult:
-    artifacts = sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file())
-    return JobResult(psnr=report.aggregate.psnr.all, ssim=report.aggregate.ssim.all,
-                     size_bytes=report.size.total_bytes, bits_per_texel=report.size.bits_per_texel,
-                     artifacts=artifacts)
+def _job_error(exc: Exception) -> str:
+    """A failed job's `error`, read by clients of the service: files by their names, never the server's paths."""
+    if isinstance(exc, InputError):
+        return exc.message(file=lambda path: Path(path).name)
+    return f"{exc}" if isinstance(exc, (ValueError, OSError)) else f"{type(exc).__name__}: {exc}"
 
 
 class _Monitor:
@@ -49,8 +42,7 @@ class _Monitor:
 
     def __init__(self, store: JobStore, job: Job, worker_id: str, interval_s: float, phase2_iterations: int):
         self.store, self.job_id, self.worker_id = store, job.id, worker_id
-        self.interval_s = interval_s
-        self.phase2_iterations = phase2_iterations
+        self.interval_s, self.phase2_iterations = interval_s, phase2_iterations
         self.progress = JobProgress(stage="loading")
         self.cancel = threading.Event()
         self._done = threading.Event()
@@ -110,8 +102,6 @@ class Worker:
         """A shutdown was asked for: by a signal to the consumer, or by `serve` ending."""
         return self.shutdown.is_set() or (self._consumer_stop is not None and self._consumer_stop.is_set())
 
-    # ------------------------------------------------------------------------------------------- one job
-
     def _claim(self, job: Job) -> Optional[Job]:
         if job.state != "queued":
             return None
@@ -120,21 +110,16 @@ class Worker:
                                       "started_at": utc_now(), "heartbeat_at": utc_now(), "error": None,
                                       "progress": JobProgress(stage="loading")})
 
-    def _finish(self, job_id: str, **fields: object) -> Optional[Job]:
-        def change(job: Job) -> Optional[Job]:
-            if job.state != "running" or job.worker != self.id:
-                return None  # re-queued meanwhile (we looked dead): the other run owns it now
-            return job.model_copy(update={"finished_at": utc_now(), **fields})
-        return self.queue.store.update(job_id, change)
+    def _update_held(self, job_id: str, change: Callable[[Job], Job]) -> Optional[Job]:
+        """Change a job only while this worker holds it: if it looked dead, the job was re-queued meanwhile
+        and another run owns it now."""
+        def held(job: Job) -> Optional[Job]:
+            return change(job) if job.state == "running" and job.worker == self.id else None
+        return self.queue.store.update(job_id, held)
 
     def release(self, job_id: str) -> None:
         """Give a job this worker holds back to the queue (shutdown): another worker restarts it."""
-        def change(job: Job) -> Optional[Job]:
-            if job.state != "running" or job.worker != self.id:
-                return None
-            return job.model_copy(update={"state": "queued", "worker": None, "started_at": None,
-                                          "progress": JobProgress(stage="queued")})
-        job = self.queue.store.update(job_id, change)
+        job = self._update_held(job_id, Job.requeued)
         if job is not None and job.state == "queued":
             self.queue.enqueue(job_id)
             log.info("job %s: back in the queue (worker shutting down)", job_id)
@@ -156,8 +141,7 @@ class Worker:
 
     def _run_claimed(self, job: Job) -> None:
         started = time.perf_counter()
-        options = job.options.compress_options().model_copy(update={"device": self.device})
-        resolved = resolve_options(options)
+        resolved = resolve_options(job.options.compress_options())  # the claim set the device: ours
         log.info("job %s: %s, attempt %d, preset %s on %s", job.id, job.name, job.attempts, resolved.preset,
                  self.device)
         self.queue.remove_partial_outputs(job.id)
@@ -174,23 +158,21 @@ class Worker:
                 if self.stopping() and not monitor.cancel.is_set():
                     self.release(job.id)
                     return
-                self._finish(job.id, state="cancelled", progress=monitor.progress.model_copy(
-                    update={"stage": "cancelled", "eta_s": None}))
+                self._update_held(job.id, lambda held: held.ended("cancelled", monitor.progress))
                 log.info("job %s: cancelled", job.id)
                 return
             except Exception as exc:  # any failure of one job is that job's, not the worker's
-                message = f"{exc}" if isinstance(exc, (ValueError, OSError)) else f"{type(exc).__name__}: {exc}"
-                self._finish(job.id, state="failed", error=message,
-                             progress=monitor.progress.model_copy(update={"stage": "failed", "eta_s": None}))
+                message = _job_error(exc)
+                self._update_held(job.id, lambda held: held.ended("failed", monitor.progress, error=message))
                 log.error("job %s: failed: %s\n%s", job.id, message, traceback.format_exc())
                 return
-        done = self._finish(job.id, state="succeeded", result=job_result(output, report),
-                            progress=monitor.progress.model_copy(update={"stage": "finished", "eta_s": 0.0}))
+        artifacts = sorted(str(p.relative_to(output)) for p in output.rglob("*") if p.is_file())
+        result = JobResult(psnr=report.aggregate.psnr.all, ssim=report.aggregate.ssim.all, artifacts=artifacts,
+                           size_bytes=report.size.total_bytes, bits_per_texel=report.size.bits_per_texel)
+        done = self._update_held(job.id, lambda held: held.ended("succeeded", monitor.progress, result=result))
         if done is not None and done.state == "succeeded":
             log.info("job %s: succeeded in %.1f s, %.2f dB", job.id, time.perf_counter() - started,
                      report.aggregate.psnr.all)
-
-    # ------------------------------------------------------------------------------------------ consumer
 
     def _recover_forever(self) -> None:
         interval = max(1.0, self.settings.stale_after_s / 3)

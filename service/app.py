@@ -1,85 +1,84 @@
-"""The HTTP API (FastAPI): submit materials, follow jobs, fetch reports and artifacts.
+"""The HTTP API (FastAPI): submit materials, follow jobs, fetch reports and artifacts; `bcf serve` runs
+`gated(create_app(settings), settings)` with uvicorn, and workers do the compressing.
 
-`create_app(settings)` builds the application; `bcf serve` runs it with uvicorn. The API only submits and
-reads jobs through `bcf.jobs`; workers (`bcf worker`, or the ones `bcf serve` starts) do the compressing.
+Routes only translate between HTTP and `bcf.jobs`: settings, queue, authorisation and the job a path names
+come in as FastAPI dependencies; answers are filtered through the public `JobView`, never the stored record.
+The token and the body size are checked before all that, in front of the app (`RequestGate`).
 """
 
 from __future__ import annotations
 
 import json
 import secrets
-import tempfile
-import zipfile
 from pathlib import Path
-from typing import Annotated, Any, Optional
+from typing import Annotated, Optional
 
-from fastapi import Depends, FastAPI, File, Form, HTTPException, Query, Request, UploadFile
+from fastapi import APIRouter, Depends, FastAPI, HTTPException, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
-from pydantic import BaseModel, ValidationError
+from pydantic import BaseModel
 from starlette.background import BackgroundTask
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from bcf.core import JobOptions, __version__
+from bcf.core import REPORT_FILE, __version__
 from bcf.jobs.queue import JobQueue
-from bcf.jobs.records import FINAL_STATES, Job, JobState
+from bcf.jobs.records import FINAL_STATES, Job, JobState, JobView
 from bcf.jobs.settings import Settings
 from bcf.jobs.store import StoreUnavailable
 from bcf.service.metrics import prometheus_text
-from bcf.service.uploads import ROLE_FIELDS, BadUpload, UploadedFile, submit_upload
+from bcf.service.uploads import Upload, read_upload, submit_upload
 
-__all__ = ["JobList", "create_app"]
-
-FORM_FIELDS = (*ROLE_FIELDS, "material", "options")
+__all__ = ["JobList", "create_app", "gated"]
 
 
-class JobList(BaseModel):
-    jobs: list[Job]
-    total: int
-    offset: int
-    limit: int
+# ---------------------------------------------------------------------------------------------- the gate
+
+# Paths anyone may read: liveness and the API description.
+OPEN_PATHS = frozenset({"/healthz", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json"})
+UNAUTHORISED = "missing or wrong bearer token (Authorization: Bearer <one of BCF_API_TOKENS>)"
 
 
 class _BodyTooLarge(Exception):
     pass
 
 
-# Paths anyone may read: liveness and the API description.
-OPEN_PATHS = frozenset({"/healthz", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json"})
-
-
-def _token_accepted(given: str, tokens: list[str]) -> bool:
+def token_accepted(given: str, tokens: list[str]) -> bool:
+    """One of `tokens`, compared in constant time (the gate and the app's dependency both ask this)."""
     return any(secrets.compare_digest(given.encode(), t.encode()) for t in tokens)
 
 
-def _token_ok(headers: dict[bytes, bytes], tokens: list[str]) -> bool:
-    scheme, _, given = headers.get(b"authorization", b"").decode("latin-1").partition(" ")
-    return scheme.lower() == "bearer" and _token_accepted(given, tokens)
+async def _send_error(send: Send, status: int, detail: str, headers: Optional[list] = None) -> None:
+    await send({"type": "http.response.start", "status": status,
+                "headers": [(b"content-type", b"application/json"), (b"connection", b"close"), *(headers or [])]})
+    await send({"type": "http.response.body", "body": json.dumps({"detail": detail}).encode()})
 
 
 class RequestGate:
-    """In front of the app, before any body is read: the bearer token (401), then the body size (413) by
-    Content-Length and by counting as it streams in (chunked uploads). Checking here, not in a FastAPI
-    dependency, means an unauthenticated or oversized upload is never parsed or spooled to disk."""
+    """The bearer token (401), then the body size (413) by Content-Length and by counting as it streams in
+    (chunked uploads). Here, not in a FastAPI dependency: FastAPI reads and parses a form before it runs any
+    dependency."""
 
     def __init__(self, app: ASGIApp, settings: Settings):
         self.app = app
         self.tokens = settings.api_tokens
         self.limit = int(settings.max_upload_mb * 2**20)
+        self.too_large = f"request body larger than the limit of {settings.max_upload_mb:.0f} MiB (BCF_MAX_UPLOAD_MB)"
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
         headers = dict(scope["headers"])
-        if self.tokens and scope["path"] not in OPEN_PATHS and not _token_ok(headers, self.tokens):
+        scheme, _, given = headers.get(b"authorization", b"").decode("latin-1").partition(" ")
+        if (self.tokens and scope["path"] not in OPEN_PATHS
+                and not (scheme.lower() == "bearer" and token_accepted(given, self.tokens))):
             await _send_error(send, 401, UNAUTHORISED, [(b"www-authenticate", b"Bearer")])
             return
         length = headers.get(b"content-length")
         if length is not None and length.isdigit() and int(length) > self.limit:
-            await _send_error(send, 413, self._too_large())
+            await _send_error(send, 413, self.too_large)
             return
         seen = 0
         started = rejected = False
@@ -91,7 +90,7 @@ class RequestGate:
                 seen += len(message.get("body", b""))
                 if seen > self.limit:
                     if not started:  # answer now: the app turns any error inside form parsing into a 400
-                        await _send_error(send, 413, self._too_large())
+                        await _send_error(send, 413, self.too_large)
                         rejected = True
                     raise _BodyTooLarge()
             return message
@@ -107,185 +106,173 @@ class RequestGate:
             await self.app(scope, counting_receive, tracking_send)
         except _BodyTooLarge:
             if not started and not rejected:
-                await _send_error(send, 413, self._too_large())
-
-    def _too_large(self) -> str:
-        return f"request body larger than the limit of {self.limit / 2**20:.0f} MiB (BCF_MAX_UPLOAD_MB)"
+                await _send_error(send, 413, self.too_large)
 
 
-UNAUTHORISED = "missing or wrong bearer token (Authorization: Bearer <one of BCF_API_TOKENS>)"
+# ------------------------------------------------------------------------------------------- dependencies
 
 
-async def _send_error(send: Send, status: int, detail: str, headers: Optional[list] = None) -> None:
-    await send({"type": "http.response.start", "status": status,
-                "headers": [(b"content-type", b"application/json"), (b"connection", b"close"), *(headers or [])]})
-    await send({"type": "http.response.body", "body": json.dumps({"detail": detail}).encode()})
+def get_settings(request: Request) -> Settings:
+    return request.app.state.settings
 
 
-def _options(text: Optional[str]) -> JobOptions:
-    if text is None or not text.strip():
-        return JobOptions()
-    try:
-        options = JobOptions.model_validate_json(text)
-    except ValidationError as exc:
-        problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'options'}: {e['msg']}" for e in exc.errors())
-        raise BadUpload(422, f"options: {problems}") from None
-    if "device" in options.model_fields_set:
-        raise BadUpload(422, "options: device is chosen by the worker that runs the job ('bcf worker --device'); "
-                             "remove it from the options")
-    return options
+def get_queue(request: Request) -> JobQueue:
+    return request.app.state.queue
 
 
-def create_app(settings: Settings, queue: Optional[JobQueue] = None) -> FastAPI:
-    queue = queue or JobQueue(settings)
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+QueueDep = Annotated[JobQueue, Depends(get_queue)]
+_bearer = HTTPBearer(auto_error=False, description="one of BCF_API_TOKENS")
+
+
+def authorised(settings: SettingsDep,
+               credentials: Annotated[Optional[HTTPAuthorizationCredentials], Depends(_bearer)]) -> None:
+    """Checked again here (`RequestGate` checks first) so the app is safe without the gate too, and so OpenAPI
+    shows the bearer scheme. No tokens configured: `bcf serve` listens on 127.0.0.1 only."""
+    if settings.api_tokens and not token_accepted(credentials.credentials if credentials else "",
+                                                  settings.api_tokens):
+        raise HTTPException(401, UNAUTHORISED, headers={"WWW-Authenticate": "Bearer"})
+
+
+def stored_job(job_id: str, queue: QueueDep) -> Job:
+    job = queue.store.get(job_id)
+    if job is None:
+        raise HTTPException(404, f"no job {job_id!r}")
+    return job
+
+
+StoredJob = Annotated[Job, Depends(stored_job)]
+
+
+def succeeded_job(job: StoredJob) -> Job:
+    """The job of the path, if it has results (409 before)."""
+    if job.state != "succeeded":
+        raise HTTPException(409, f"job {job.id} is {job.state}; results exist once it has succeeded"
+                            + (f" (error: {job.error})" if job.error else ""))
+    return job
+
+
+SucceededJob = Annotated[Job, Depends(succeeded_job)]
+
+
+# ------------------------------------------------------------------------------------------------- routes
+
+
+class JobList(BaseModel):
+    jobs: list[JobView]
+    total: int
+    offset: int
+    limit: int
+
+
+open_routes = APIRouter()
+routes = APIRouter(dependencies=[Depends(authorised)])
+
+
+@open_routes.get("/healthz", tags=["service"])
+def healthz(settings: SettingsDep, queue: QueueDep) -> dict[str, str]:
+    """Liveness and whether the job store answers (no token needed; 503 when it does not)."""
+    queue.store.ping()
+    return {"status": "ok", "version": __version__, "mode": "farm" if settings.farm_mode else "embedded"}
+
+
+@routes.get("/metrics", tags=["service"], response_class=PlainTextResponse)
+def metrics(queue: QueueDep) -> PlainTextResponse:
+    """Prometheus text format: jobs by state, queue depth, job durations."""
+    return PlainTextResponse(prometheus_text(queue), media_type="text/plain; version=0.0.4")
+
+
+@routes.post("/v1/jobs", tags=["jobs"], status_code=202, response_model=JobView,
+             responses={200: {"model": JobView,
+                              "description": "the same inputs and options were submitted before: that job"},
+                        413: {"description": "upload over BCF_MAX_UPLOAD_MB"},
+                        415: {"description": "a file is not an accepted image (or the material not a zip)"},
+                        422: {"description": "the material or the options cannot be used"}})
+async def submit(upload: Annotated[Upload, Depends(read_upload)], queue: QueueDep, response: Response) -> Job:
+    """Submit a material: files per role, or a zip. 202 with the new job, or 200 with the existing job when
+    the same files and options were submitted before (and did not fail)."""
+    job, created = await run_in_threadpool(submit_upload, queue, upload)
+    response.status_code, response.headers["Location"] = 202 if created else 200, f"/v1/jobs/{job.id}"
+    return job
+
+
+@routes.get("/v1/jobs", tags=["jobs"])
+def list_jobs(queue: QueueDep,
+              state: Annotated[Optional[list[JobState]], Query(description="repeat to give several")] = None,
+              offset: Annotated[int, Query(ge=0)] = 0,
+              limit: Annotated[int, Query(ge=1, le=1000)] = 100) -> JobList:
+    """Jobs, newest first."""
+    jobs, total = queue.store.list(set(state) if state else None, offset, limit)
+    return JobList(jobs=jobs, total=total, offset=offset, limit=limit)
+
+
+@routes.get("/v1/jobs/{job_id}", tags=["jobs"], response_model=JobView)
+def get_job(job: StoredJob) -> Job:
+    return job
+
+
+@routes.delete("/v1/jobs/{job_id}", tags=["jobs"], response_model=JobView,
+               responses={202: {"model": JobView, "description": "running: it stops within a heartbeat or two"},
+                          409: {"description": "the job already finished"}})
+def cancel_job(job: StoredJob, queue: QueueDep, response: Response) -> Job:
+    """Cancel: a queued job at once (200), a running one within a few seconds (202; watch its state)."""
+    job = queue.cancel(job.id) or job  # None only for a job that vanished meanwhile: jobs are never deleted
+    if job.state in FINAL_STATES and job.state != "cancelled":
+        raise HTTPException(409, f"job {job.id} already {job.state}; nothing to cancel")
+    response.status_code = 200 if job.state == "cancelled" else 202
+    return job
+
+
+@routes.get("/v1/jobs/{job_id}/report", tags=["results"], response_class=FileResponse)
+def get_report(job: SucceededJob, queue: QueueDep) -> FileResponse:
+    """The job's report.json (the schema is in docs/FORMAT.md)."""
+    return FileResponse(queue.artifacts_path(job.id) / REPORT_FILE, media_type="application/json")
+
+
+@routes.get("/v1/jobs/{job_id}/artifacts", tags=["results"], response_class=FileResponse)
+def get_artifacts(job: SucceededJob, queue: QueueDep, settings: SettingsDep) -> FileResponse:
+    """Every result file as one zip (features_*.dds, decoder.bin, manifest.json, report.json, report.html,
+    baselines/...)."""
+    archive = queue.pack_artifacts(job, settings.uploads_dir)
+    return FileResponse(archive, media_type="application/zip", filename=f"{job.name}-{job.id}.zip",
+                        background=BackgroundTask(archive.unlink, missing_ok=True))
+
+
+@routes.get("/v1/jobs/{job_id}/artifacts/{name:path}", tags=["results"], response_class=FileResponse)
+def get_artifact(job: SucceededJob, name: str, queue: QueueDep) -> FileResponse:
+    """One result file by its name in the job's `result.artifacts`."""
+    artifacts = job.result.artifacts if job.result else []
+    if name not in artifacts:
+        raise HTTPException(404, f"job {job.id} has no artifact {name!r}; it has {', '.join(artifacts) or 'none'}")
+    return FileResponse(queue.artifacts_path(job.id) / name, filename=Path(name).name)
+
+
+# ------------------------------------------------------------------------------------------ the application
+
+
+async def _store_down(request: Request, exc: StoreUnavailable) -> JSONResponse:
+    return JSONResponse({"detail": f"job store unavailable, retry later: {exc}"}, status_code=503,
+                        headers={"Retry-After": "5"})
+
+
+async def _invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
+    problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
+    return JSONResponse({"detail": problems}, status_code=422)
+
+
+def create_app(settings: Settings) -> FastAPI:
+    """The API over the job queue `settings` describe; both live in `app.state`, for the dependencies."""
     app = FastAPI(title="bcf", version=__version__,
                   description="Neural block-compressed features (BC6H) for PBR materials: submit a texture set, "
                               "get BC6H feature textures, MLP weights and a quality report.")
-    app.state.queue = queue
-    bearer = HTTPBearer(auto_error=False, description="one of BCF_API_TOKENS")
-
-    def authorised(credentials: Optional[HTTPAuthorizationCredentials] = Depends(bearer)) -> None:
-        """Checked again here (RequestGate checks first) so the app is safe without the gate too, and so
-        OpenAPI shows the bearer scheme."""
-        if not settings.api_tokens:
-            return  # no tokens: `bcf serve` listens on 127.0.0.1 only
-        if not _token_accepted(credentials.credentials if credentials else "", settings.api_tokens):
-            raise HTTPException(401, UNAUTHORISED, headers={"WWW-Authenticate": "Bearer"})
-
-    def find(job_id: str) -> Job:
-        job = queue.store.get(job_id)
-        if job is None:
-            raise HTTPException(404, f"no job {job_id!r}")
-        return job
-
-    def succeeded(job_id: str) -> Job:
-        job = find(job_id)
-        if job.state != "succeeded":
-            raise HTTPException(409, f"job {job.id} is {job.state}; results exist once it has succeeded"
-                                + (f" (error: {job.error})" if job.error else ""))
-        return job
-
-    @app.exception_handler(BadUpload)
-    async def bad_upload(request: Request, exc: BadUpload) -> JSONResponse:
-        return JSONResponse({"detail": str(exc)}, status_code=exc.status)
-
-    @app.exception_handler(StoreUnavailable)
-    async def store_down(request: Request, exc: StoreUnavailable) -> JSONResponse:
-        return JSONResponse({"detail": f"job store unavailable, retry later: {exc}"}, status_code=503,
-                            headers={"Retry-After": "5"})
-
-    @app.exception_handler(RequestValidationError)
-    async def invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
-        problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
-        return JSONResponse({"detail": problems}, status_code=422)
-
-    guarded = [Depends(authorised)]
-
-    @app.get("/healthz", tags=["service"])
-    def healthz() -> dict[str, Any]:
-        """Liveness and whether the job store answers (no token needed)."""
-        try:
-            queue.store.ping()
-        except StoreUnavailable as exc:
-            return JSONResponse({"status": "unavailable", "detail": str(exc)}, status_code=503)  # type: ignore
-        return {"status": "ok", "version": __version__, "mode": "farm" if settings.farm_mode else "embedded"}
-
-    @app.get("/metrics", tags=["service"], dependencies=guarded, response_class=PlainTextResponse)
-    def metrics() -> PlainTextResponse:
-        """Prometheus text format: jobs by state, queue depth, job durations."""
-        return PlainTextResponse(prometheus_text(queue), media_type="text/plain; version=0.0.4")
-
-    @app.post("/v1/jobs", tags=["jobs"], status_code=202, dependencies=guarded, response_model=Job,
-              responses={200: {"description": "the same inputs and options were submitted before: that job"},
-                         413: {"description": "upload over BCF_MAX_UPLOAD_MB"},
-                         415: {"description": "a file is not an accepted image (or the material not a zip)"},
-                         422: {"description": "the material or the options cannot be used"}})
-    async def submit(request: Request,
-                     albedo: Optional[UploadFile] = File(None, description="base colour, sRGB"),
-                     normal: Optional[UploadFile] = File(None, description="tangent-space normal map"),
-                     arm: Optional[UploadFile] = File(None, description="packed AO / roughness / metalness"),
-                     ao: Optional[UploadFile] = File(None), roughness: Optional[UploadFile] = File(None),
-                     metalness: Optional[UploadFile] = File(None),
-                     material: Optional[UploadFile] = File(None, description="zip of a material folder, "
-                                                                             "instead of the files per role"),
-                     options: Optional[str] = Form(None, description='JSON, e.g. {"preset": "fast"}')) -> Any:
-        """Submit a material: files per role, or a zip. 202 with the new job, or 200 with the existing job when
-        the same files and options were submitted before (and did not fail)."""
-        form = await request.form()
-        unknown = sorted(set(form.keys()) - set(FORM_FIELDS))
-        if unknown:
-            raise BadUpload(400, f"unknown form field(s) {', '.join(unknown)}; expected "
-                                 f"{', '.join(FORM_FIELDS)}")
-        if len(form.getlist("options")) > 1 or any(len(form.getlist(f)) > 1 for f in FORM_FIELDS):
-            raise BadUpload(400, "each form field may appear once")
-        parsed = _options(options)
-        given = {"albedo": albedo, "normal": normal, "arm": arm, "ao": ao, "roughness": roughness,
-                 "metalness": metalness, "material": material}
-        uploads = [UploadedFile(field, f.filename, f.file) for field, f in given.items() if f is not None]
-        job, created = await run_in_threadpool(submit_upload, queue, uploads, parsed)
-        return JSONResponse(job.model_dump(mode="json"), status_code=202 if created else 200,
-                            headers={"Location": f"/v1/jobs/{job.id}"})
-
-    @app.get("/v1/jobs", tags=["jobs"], dependencies=guarded, response_model=JobList)
-    def list_jobs(state: Annotated[Optional[list[JobState]], Query(description="repeat to give several")] = None,
-                  offset: Annotated[int, Query(ge=0)] = 0,
-                  limit: Annotated[int, Query(ge=1, le=1000)] = 100) -> JobList:
-        """Jobs, newest first."""
-        jobs, total = queue.store.list(set(state) if state else None, offset, limit)
-        return JobList(jobs=jobs, total=total, offset=offset, limit=limit)
-
-    @app.get("/v1/jobs/{job_id}", tags=["jobs"], dependencies=guarded, response_model=Job)
-    def get_job(job_id: str) -> Job:
-        return find(job_id)
-
-    @app.delete("/v1/jobs/{job_id}", tags=["jobs"], dependencies=guarded, response_model=Job,
-                responses={409: {"description": "the job already finished"}})
-    def cancel_job(job_id: str) -> Any:
-        """Cancel: a queued job at once, a running one within a few seconds (watch its state)."""
-        find(job_id)
-        job = queue.cancel(job_id)
-        if job is None:
-            raise HTTPException(404, f"no job {job_id!r}")
-        if job.state in FINAL_STATES and job.state != "cancelled":
-            raise HTTPException(409, f"job {job.id} already {job.state}; nothing to cancel")
-        return JSONResponse(job.model_dump(mode="json"), status_code=200 if job.state == "cancelled" else 202)
-
-    @app.get("/v1/jobs/{job_id}/report", tags=["results"], dependencies=guarded)
-    def get_report(job_id: str) -> FileResponse:
-        """The job's report.json (the schema is in docs/FORMAT.md)."""
-        job = succeeded(job_id)
-        return FileResponse(queue.artifacts_path(job.id) / "report.json", media_type="application/json")
-
-    @app.get("/v1/jobs/{job_id}/artifacts", tags=["results"], dependencies=guarded,
-             response_class=FileResponse)
-    def get_artifacts(job_id: str) -> FileResponse:
-        """Every result file as one zip (features_*.dds, decoder.bin, manifest.json, report.json, report.html,
-        baselines/...)."""
-        job = succeeded(job_id)
-        folder = queue.artifacts_path(job.id)
-        settings.uploads_dir.mkdir(parents=True, exist_ok=True)
-        handle = tempfile.NamedTemporaryFile(dir=settings.uploads_dir, prefix="download-", suffix=".zip",
-                                             delete=False)
-        with handle, zipfile.ZipFile(handle, "w", zipfile.ZIP_DEFLATED) as archive:
-            for name in job.result.artifacts if job.result else []:
-                archive.write(folder / name, name)
-        return FileResponse(handle.name, media_type="application/zip", filename=f"{job.name}-{job.id}.zip",
-                            background=BackgroundTask(Path(handle.name).unlink, missing_ok=True))
-
-    @app.get("/v1/jobs/{job_id}/artifacts/{name:path}", tags=["results"], dependencies=guarded,
-             response_class=FileResponse)
-    def get_artifact(job_id: str, name: str) -> FileResponse:
-        """One result file by its name in the job's `result.artifacts`."""
-        job = succeeded(job_id)
-        if job.result is None or name not in job.result.artifacts:
-            raise HTTPException(404, f"job {job.id} has no artifact {name!r}; it has "
-                                     f"{', '.join(job.result.artifacts) if job.result else 'none'}")
-        return FileResponse(queue.artifacts_path(job.id) / name, filename=Path(name).name)
-
+    app.state.settings, app.state.queue = settings, JobQueue(settings)
+    app.add_exception_handler(StoreUnavailable, _store_down)  # type: ignore[arg-type]
+    app.add_exception_handler(RequestValidationError, _invalid)  # type: ignore[arg-type]
+    app.include_router(open_routes)
+    app.include_router(routes)
     return app
 
 
 def gated(app: FastAPI, settings: Settings) -> ASGIApp:
-    """The app as uvicorn runs it: with the token check and the upload limit in front."""
+    """The app as uvicorn runs it: with the token check and the upload limit in front (`RequestGate`)."""
     return RequestGate(app, settings)
-

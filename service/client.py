@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import tempfile
 import time
 import zipfile
 from pathlib import Path
@@ -17,12 +16,12 @@ from typing import Any, Optional, Sequence
 
 import httpx
 
-from bcf.core import ExportError, JobOptions, OutputExistsError, TrainingProgress, load_export, replace_folder
+from bcf.core import (ExportError, JobOptions, OutputExistsError, TrainingProgress, load_export, replace_folder,
+                      staging_folder)
 from bcf.jobs.batch import BatchItem, BatchMaterial, EventCallback, MaterialEvent, check_replaceable
+from bcf.jobs.records import FINAL_STATES, JobView
 
 __all__ = ["JobRejected", "ServiceClient", "ServiceUnavailable", "run_remote"]
-
-FINAL = ("succeeded", "failed", "cancelled")
 
 
 class ServiceUnavailable(RuntimeError):
@@ -42,7 +41,10 @@ class ServiceClient:
     def close(self) -> None:
         self.http.close()
 
-    def _request(self, method: str, path: str, **kwargs: Any) -> httpx.Response:
+    def _request(self, method: str, path: str, refused: type[Exception] = ServiceUnavailable,
+                 **kwargs: Any) -> httpx.Response:
+        """A 2xx response. ServiceUnavailable when the service cannot be used at all (unreachable, wrong token,
+        server error); `refused` when it answers this one request with a 4xx."""
         try:
             response = self.http.request(method, path, **kwargs)
         except httpx.HTTPError as exc:
@@ -51,29 +53,25 @@ class ServiceClient:
             raise ServiceUnavailable(f"{self.url}: {_detail(response)} (pass --token)")
         if response.status_code >= 500:
             raise ServiceUnavailable(f"{self.url}: HTTP {response.status_code}: {_detail(response)}")
+        if not response.is_success:
+            raise refused(f"{method} {path}: the service refused it (HTTP {response.status_code}): "
+                          f"{_detail(response)}")
         return response
 
     def check(self) -> None:
         """Fail early on a wrong URL or token, before anything is uploaded."""
-        response = self._request("GET", "/v1/jobs", params={"limit": 1})
-        if response.status_code != 200:
-            raise ServiceUnavailable(f"{self.url}: HTTP {response.status_code}: {_detail(response)}")
+        self._request("GET", "/v1/jobs", params={"limit": 1})
 
-    def submit(self, entry: BatchMaterial, options: JobOptions) -> dict[str, Any]:
+    def submit(self, entry: BatchMaterial, options: JobOptions) -> JobView:
         files = {role: (Path(path).name, Path(path).read_bytes()) for role, path in entry.files.roles().items()}
         payload = options.model_dump(mode="json", exclude={"device"}, exclude_none=True)
         if entry.files.normal_convention and "normal_convention" not in payload:
             payload["normal_convention"] = entry.files.normal_convention
-        response = self._request("POST", "/v1/jobs", files=files, data={"options": json.dumps(payload)})
-        if response.status_code not in (200, 202):
-            raise JobRejected(f"the service refused it (HTTP {response.status_code}): {_detail(response)}")
-        return response.json()
+        response = self._request("POST", "/v1/jobs", JobRejected, files=files, data={"options": json.dumps(payload)})
+        return JobView.model_validate(response.json())
 
-    def job(self, job_id: str) -> dict[str, Any]:
-        response = self._request("GET", f"/v1/jobs/{job_id}")
-        if response.status_code != 200:
-            raise ServiceUnavailable(f"{self.url}: job {job_id}: HTTP {response.status_code}: {_detail(response)}")
-        return response.json()
+    def job(self, job_id: str) -> JobView:
+        return JobView.model_validate(self._request("GET", f"/v1/jobs/{job_id}").json())
 
     def download_artifacts(self, job_id: str, target: Path) -> None:
         try:
@@ -98,8 +96,7 @@ def _detail(response: httpx.Response) -> str:
 
 def _install(client: ServiceClient, job_id: str, output: Path) -> None:
     """Download the job's artifacts, check them, and replace `output` with them atomically."""
-    output.parent.mkdir(parents=True, exist_ok=True)
-    staged = Path(tempfile.mkdtemp(prefix=f".{output.name}.partial-", dir=output.parent))
+    staged = staging_folder(output)
     try:
         archive = staged.with_suffix(".zip")
         client.download_artifacts(job_id, archive)
@@ -114,12 +111,12 @@ def _install(client: ServiceClient, job_id: str, output: Path) -> None:
         raise
 
 
-def _progress(job: dict[str, Any]) -> Optional[TrainingProgress]:
-    p = job.get("progress") or {}
-    if job.get("state") != "running" or p.get("phase") is None:
+def _progress(job: JobView) -> Optional[TrainingProgress]:
+    p = job.progress
+    if job.state != "running" or p.phase is None:
         return None
-    return TrainingProgress(phase=p["phase"], iteration=p["iteration"], total=p["total"], psnr=p.get("psnr") or 0.0,
-                            iterations_per_s=0.0, eta_s=p.get("eta_s") or 0.0, elapsed_s=0.0)
+    return TrainingProgress(phase=p.phase, iteration=p.iteration, total=p.total, psnr=p.psnr or 0.0,
+                            iterations_per_s=0.0, eta_s=p.eta_s or 0.0, elapsed_s=0.0)
 
 
 def run_remote(todo: Sequence[BatchMaterial], options: JobOptions, client: ServiceClient,
@@ -141,29 +138,28 @@ def run_remote(todo: Sequence[BatchMaterial], options: JobOptions, client: Servi
             items[index] = entry.item("failed", error=str(exc))
             emit(MaterialEvent(name, "finished", item=items[index]))
             continue
-        running[index] = (job["id"], time.perf_counter())
+        running[index] = (job.id, time.perf_counter())
         emit(MaterialEvent(name, "started"))
     while running:
         for index, (job_id, submitted) in list(running.items()):
             entry = todo[index]
             job = client.job(job_id)
-            if job["state"] not in FINAL:
+            if job.state not in FINAL_STATES:
                 progress = _progress(job)
                 if progress is not None:
                     emit(MaterialEvent(entry.found.material, "progress", progress))
                 continue
             seconds = round(time.perf_counter() - submitted, 2)
-            if job["state"] == "succeeded":
+            if job.state == "succeeded" and job.result is not None:
                 try:
                     _install(client, job_id, entry.output)
-                    result = job["result"]
-                    item = entry.item("compressed", psnr=result["psnr"], ssim=result["ssim"],
-                                      size_bytes=result["size_bytes"], seconds=seconds, job_id=job_id)
+                    item = entry.item("compressed", psnr=job.result.psnr, ssim=job.result.ssim,
+                                      size_bytes=job.result.size_bytes, seconds=seconds, job_id=job_id)
                 except (ExportError, zipfile.BadZipFile, OSError) as exc:
                     item = entry.item("failed", error=f"result of job {job_id} unusable: {exc}", seconds=seconds,
                                       job_id=job_id)
             else:
-                item = entry.item("failed", error=f"job {job_id} {job['state']}: {job.get('error') or 'no message'}",
+                item = entry.item("failed", error=f"job {job_id} {job.state}: {job.error or 'no message'}",
                                   seconds=seconds, job_id=job_id)
             items[index] = item
             del running[index]

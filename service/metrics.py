@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from bcf.jobs.queue import JobQueue
-from bcf.jobs.records import FINAL_STATES
+from bcf.jobs.records import FINAL_STATES, JOB_STATES
 
 __all__ = ["DURATION_BUCKETS_S", "prometheus_text"]
 
@@ -12,16 +12,15 @@ DURATION_BUCKETS_S = (1, 5, 15, 60, 300, 900, 3600, 4 * 3600, 12 * 3600)
 
 
 def prometheus_text(queue: JobQueue) -> str:
+    jobs, _ = queue.store.list()  # the finished ones are most of them, and their durations are needed anyway
     lines = ["# HELP bcf_jobs Jobs in the store by state.", "# TYPE bcf_jobs gauge"]
-    for state, count in queue.store.counts().items():
-        lines.append(f'bcf_jobs{{state="{state}"}} {count}')
+    lines += [f'bcf_jobs{{state="{state}"}} {sum(job.state == state for job in jobs)}' for state in JOB_STATES]
     lines += ["# HELP bcf_queue_depth Messages waiting in the queue for a worker.", "# TYPE bcf_queue_depth gauge",
               f"bcf_queue_depth {queue.pending_messages()}"]
-    finished, _ = queue.store.list(set(FINAL_STATES))
     lines += ["# HELP bcf_job_duration_seconds Run time of finished jobs (start of the last attempt to end).",
               "# TYPE bcf_job_duration_seconds histogram"]
     for state in sorted(FINAL_STATES):
-        durations = [d for job in finished if job.state == state and (d := job.duration_s) is not None]
+        durations = [d for job in jobs if job.state == state and (d := job.duration_s) is not None]
         for bound in DURATION_BUCKETS_S:
             lines.append(f'bcf_job_duration_seconds_bucket{{state="{state}",le="{bound}"}} '
                          f"{sum(d <= bound for d in durations)}")

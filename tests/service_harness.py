@@ -18,6 +18,9 @@ import httpx
 import numpy as np
 import OpenImageIO as oiio
 
+from bcf.jobs.records import Job
+from bcf.jobs.settings import Settings
+from bcf.jobs.store import JobStore, open_store
 from bcf_command import BCF, ONE_THREAD_ENV
 
 CHAINMAIL = Path(__file__).parent / "data" / "chainmail_128"
@@ -92,6 +95,11 @@ class BcfEnvironment:
         self._count += 1
         return self.root / f"{kind}-{self._count}.log"
 
+    def store(self) -> JobStore:
+        """The job store the API and workers share: the stored records, with what the API does not show
+        (attempts, the worker, cancel requests)."""
+        return open_store(Settings(_env_file=None, data_dir=self.data_dir, queue_url=self.env.get("BCF_QUEUE_URL")))
+
     def serve(self, port: Optional[int] = None, workers: int = 0, *extra: str) -> "Server":
         return Server(self, port or free_port(), workers, extra)
 
@@ -107,6 +115,7 @@ class Server(Process):
     def __init__(self, environment: BcfEnvironment, port: int, workers: int, extra: tuple[str, ...]):
         super().__init__([*BCF, "serve", "--port", str(port), "--workers", str(workers), *extra], environment.env,
                          environment.root, environment._log("serve"))
+        self.environment = environment
         self.url = f"http://127.0.0.1:{port}"
         token = environment.env.get("BCF_API_TOKENS", "").split(",")[0]
         headers = {"Authorization": f"Bearer {token}"} if token else {}
@@ -129,6 +138,12 @@ class Server(Process):
         response = self.client.get(f"/v1/jobs/{job_id}")
         assert response.status_code == 200, response.text
         return response.json()
+
+    def stored(self, job_id: str) -> Job:
+        """The job's stored record, read from the store: the API's answers leave out the bookkeeping."""
+        job = self.environment.store().get(job_id)
+        assert job is not None, f"no job {job_id} in the store"
+        return job
 
     def wait_for_job(self, job_id: str, condition: Callable[[dict[str, Any]], bool], timeout: float, what: str,
                      logs: tuple[Path, ...] = ()) -> dict[str, Any]:

@@ -1,4 +1,5 @@
-"""The job stores (SQLite file, real Redis) behave the same, and `JobQueue` recovers jobs whose worker died.
+"""The job stores (SQLite file, real Redis) behave the same, `JobQueue` recovers jobs whose worker died, and
+`bcf.jobs.submission` makes jobs from staged files without any HTTP.
 
 Every store test runs against both stores: the API and workers rely on `add`'s de-duplication and on `update`
 being an atomic read-modify-write, whichever store a deployment uses."""
@@ -14,12 +15,14 @@ from typing import Any, Iterator
 import pytest
 import redis
 
+from bcf.core import InputError, MaterialFiles, load_texture_set
 from bcf.core.options import JobOptions
 from bcf.jobs.queue import JobQueue
 from bcf.jobs.records import JOB_STATES, InputFile, Job, JobState, utc_now
 from bcf.jobs.settings import Settings
 from bcf.jobs.store import JobStore, RedisJobStore, SqliteJobStore
-from service_harness import redis_server
+from bcf.jobs.submission import StagedMaterial, load_job_material, submit_material
+from service_harness import CHAINMAIL, CHAINMAIL_ROLES, redis_server
 
 HOUR_AGO = utc_now() - datetime.timedelta(hours=1)
 LONG_AGO = datetime.datetime(2000, 1, 1, tzinfo=datetime.timezone.utc)
@@ -175,14 +178,15 @@ def test_list_is_newest_first_filters_by_state_and_paginates(store: JobStore) ->
     assert store.list({"running"})[0] == [jobs[1]]
 
 
-def test_counts_has_every_state(store: JobStore) -> None:
-    assert store.counts() == {state: 0 for state in JOB_STATES}
+def test_the_state_index_follows_state_changes(store: JobStore) -> None:
     for state in ["queued", "queued", "running", "failed"]:
         store.add(make_job(state=state))
     moved = make_job()
     store.add(moved)
     set_state(store, moved, "cancelled")
-    assert store.counts() == {"queued": 2, "running": 1, "succeeded": 0, "failed": 1, "cancelled": 1}
+    counts = {state: store.list({state})[1] for state in JOB_STATES}
+    assert counts == {"queued": 2, "running": 1, "succeeded": 0, "failed": 1, "cancelled": 1}
+    assert [j.id for j in store.list({"cancelled"})[0]] == [moved.id]
     store.ping()
 
 
@@ -265,3 +269,49 @@ def test_cancel(queue: JobQueue) -> None:
     assert after is not None and after.state == "running" and after.cancel_requested
     assert queue.cancel(done.id) == done  # final jobs are returned unchanged
     assert queue.cancel("0123456789abcdef") is None
+
+
+# -------------------------------------------------------------------------------------- job creation
+
+
+def staged_chainmail(folder: Path, **replace: bytes) -> StagedMaterial:
+    """The Chainmail004 files copied to folder/<role>/<name>, as a submitter stages them; `replace` swaps the
+    bytes of a role's file."""
+    files = {}
+    for role, name in CHAINMAIL_ROLES.items():
+        target = folder / role / name
+        target.parent.mkdir(parents=True)
+        target.write_bytes(replace.get(role, (CHAINMAIL / name).read_bytes()))
+        files[role] = target
+    return StagedMaterial(files=files, client_names={role: f"sent {name}" for role, name in CHAINMAIL_ROLES.items()})
+
+
+def test_submit_material_stores_the_inputs_under_their_names_and_queues_once(tmp_path: Path) -> None:
+    queue = JobQueue(Settings(_env_file=None, data_dir=tmp_path / "data"))
+    job, created = submit_material(queue, staged_chainmail(tmp_path / "first"), JobOptions(preset="fast"))
+    assert created and job.state == "queued" and queue.store.get(job.id) == job and queue.pending_messages() == 1
+    assert job.name == "Chainmail004_1K_Color" and job.options.normal_convention == "directx"
+    assert {(f.role, f.name, f.stored_as) for f in job.inputs} == {
+        (role, f"sent {name}", f"{role}/{name}") for role, name in CHAINMAIL_ROLES.items()}
+    stored = queue.inputs_path(job.id)
+    assert all((stored / role / name).read_bytes() == (CHAINMAIL / name).read_bytes()
+               for role, name in CHAINMAIL_ROLES.items())
+    assert not list((tmp_path / "first").rglob("*.png")), "the staged files are moved, not copied"
+    assert load_job_material(job, stored).source.files == load_texture_set(
+        MaterialFiles(**{role: CHAINMAIL / name for role, name in CHAINMAIL_ROLES.items()},
+                      normal_convention="directx")).source.files
+
+    again, created = submit_material(queue, staged_chainmail(tmp_path / "second"), JobOptions(preset="fast"))
+    assert not created and again.id == job.id and [p.name for p in stored.parent.iterdir()] == [job.id]
+
+
+def test_submit_material_raises_input_errors_with_fields_and_leaves_nothing(tmp_path: Path) -> None:
+    queue = JobQueue(Settings(_env_file=None, data_dir=tmp_path / "data"))
+    small = staged_chainmail(tmp_path / "small", albedo=(CHAINMAIL / "Chainmail004_1K_Opacity.png").read_bytes())
+    with pytest.raises(InputError) as raised:  # the opacity map has 1 channel: not an albedo
+        submit_material(queue, small, JobOptions())
+    assert raised.value.role == "albedo" and raised.value.file == small.files["albedo"]
+    with pytest.raises(InputError) as raised:
+        submit_material(queue, staged_chainmail(tmp_path / "device"), JobOptions(device="cpu"))
+    assert raised.value.options == (("device",),) and "device" in raised.value.message()
+    assert queue.store.list()[1] == 0 and not (tmp_path / "data" / "inputs").exists()

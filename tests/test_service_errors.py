@@ -23,6 +23,8 @@ TOKEN = "secret"
 # Small limits so each can be crossed with a small request.
 LIMITS = {"api_tokens": TOKEN, "max_upload_mb": 1, "max_unzipped_mb": 4, "max_zip_entries": 8}
 FOLDER = "Chainmail004_1K-PNG"  # material_zip's folder: the job's name
+PUBLIC_JOB_FIELDS = {"id", "state", "name", "options", "inputs", "notes", "progress", "error", "created_at",
+                     "updated_at", "started_at", "finished_at", "result"}
 Files = dict[str, tuple[str, bytes, str]]
 
 
@@ -190,7 +192,11 @@ BAD_UPLOADS: dict[str, BadRequest] = {
                                 lambda: as_material(b"PK but not really a zip archive" * 4)),
     "mismatched-sizes": BadRequest(422, ("differ in size", "64x64", "128x128", "Chainmail004_1K_Color.png"),
                                    _mismatched),
-    "missing-normal": BadRequest(422, ("incomplete material", "missing normal"), _without("normal")),
+    "missing-normal": BadRequest(422, ("incomplete material", "missing normal", "the form fields albedo, normal"),
+                                 _without("normal")),
+    "arm-and-separate-maps": BadRequest(422, ("arm (Chainmail004_1K_Roughness.png)", "the form field arm cannot be "
+                                              "combined with the form fields roughness, metalness"),
+                                        lambda: material() | {"arm": material()["roughness"]}),
     "zip-traversal": BadRequest(400, ("../evil.png", "outside the archive"),
                                 lambda: as_material(zip_of(material_entries() | {"../evil.png": b"x"}))),
     "zip-absolute": BadRequest(400, ("/abs.png", "outside the archive"),
@@ -207,7 +213,8 @@ BAD_UPLOADS: dict[str, BadRequest] = {
     "options-not-json": BadRequest(422, ("options", "json"), material, options("{preset: fast")),
     "options-unknown-key": BadRequest(422, ("options", "speed", "not permitted"), material, options({"speed": 11})),
     "options-bad-preset": BadRequest(422, ("preset", "fast", "paper"), material, options({"preset": "slow"})),
-    "options-device": BadRequest(422, ("device", "chosen by the worker"), material, options({"device": "cuda"})),
+    "options-device": BadRequest(422, ('options {"device": ...}', "chosen by the worker"), material,
+                                 options({"device": "cuda"})),
     "options-bad-baseline": BadRequest(422, ("baseline", "nope"), material, options({"baselines": ["nope"]})),
     "options-twice": BadRequest(400, ("once",), material, {"options": ['{"preset": "fast"}', "{}"]}),
 }
@@ -217,6 +224,7 @@ BAD_UPLOADS: dict[str, BadRequest] = {
 def test_bad_upload_is_refused_and_leaves_nothing(service: Service, case: BadRequest) -> None:
     detail = assert_error(post(service, files=case.files(), data=case.data), case.status, *case.words)
     assert str(service.data_dir) not in detail, "the message shows a server path"
+    assert not re.search(r"--(albedo|normal|arm|ao|roughness|metalness|force)\b", detail), "a CLI flag, not a field"
     assert_nothing_written(service)
 
 
@@ -263,19 +271,23 @@ def test_valid_zip_is_queued_deduplicated_cancelled_and_counted(accepting: Servi
     response = client.post("/v1/jobs", files=upload)
     assert response.status_code == 202, response.text
     job = response.json()
-    assert job["state"] == "queued" and job["name"] == FOLDER and job["attempts"] == 0
+    assert job["state"] == "queued" and job["name"] == FOLDER
     assert response.headers["location"] == f"/v1/jobs/{job['id']}"
     assert isinstance(job["notes"], list)
-    # Inputs are stored as <role>.<ext>; the client's file names are only shown back, never used as paths.
+    assert set(job) == PUBLIC_JOB_FIELDS, "the answer shows the public job, not the stored record"
+    # Inputs are stored as <role>/<file name>, one folder per role; the zip's own name and folder are not used.
     stored = data_dir / "inputs" / job["id"]
-    roles = {"albedo", "normal", "roughness", "metalness"}
-    assert sorted(p.name for p in stored.iterdir()) == sorted(f"{role}.png" for role in roles)
-    assert {f["role"]: f["stored_as"] for f in job["inputs"]} == {role: f"{role}.png" for role in roles}
-    assert {f["name"] for f in job["inputs"]} == {name for name, _, _ in material().values()}
-    assert all((stored / f"{role}.png").read_bytes() == material()[role][1] for role in roles)
-    client_names = {name for name, _, _ in material().values()} | {FOLDER, "my upload.zip", "my_upload"}
-    assert not [p for p in data_dir.rglob("*") if p.name in client_names]
+    names = {role: name for role, (name, _, _) in material().items()}
+    assert sorted(str(p.relative_to(stored)) for p in stored.glob("*/*")) == sorted(f"{r}/{n}"
+                                                                                   for r, n in names.items())
+    assert all((stored / role / name).read_bytes() == material()[role][1] for role, name in names.items())
+    assert [{"role": f["role"], "name": f["name"]} for f in job["inputs"]] == [{"role": r, "name": n}
+                                                                           for r, n in names.items()]
+    assert all(set(f) == {"role", "name", "sha256", "bytes"} for f in job["inputs"])
+    assert not [p for p in data_dir.rglob("*") if p.name in {FOLDER, "my upload.zip", "my_upload"}]
     assert not [p for p in (data_dir / "uploads").rglob("*")], "staging left behind"
+    record = accepting.server.stored(job["id"])
+    assert record.attempts == 0 and record.worker is None and len(record.input_key) == 64
 
     again = client.post("/v1/jobs", files=upload)
     assert again.status_code == 200, again.text
@@ -285,10 +297,12 @@ def test_valid_zip_is_queued_deduplicated_cancelled_and_counted(accepting: Servi
     queued = client.get("/v1/jobs", params={"state": "queued"})
     assert queued.status_code == 200, queued.text
     assert queued.json()["total"] == 1 and [j["id"] for j in queued.json()["jobs"]] == [job["id"]]
+    assert set(queued.json()["jobs"][0]) == PUBLIC_JOB_FIELDS
 
     cancelled = client.delete(f"/v1/jobs/{job['id']}")
     assert cancelled.status_code == 200, cancelled.text
     assert cancelled.json()["state"] == "cancelled" and cancelled.json()["finished_at"] is not None
+    assert set(cancelled.json()) == PUBLIC_JOB_FIELDS
     assert client.get(f"/v1/jobs/{job['id']}").json()["state"] == "cancelled"
 
     metrics = client.get("/metrics")
@@ -305,9 +319,31 @@ def test_valid_zip_is_queued_deduplicated_cancelled_and_counted(accepting: Servi
     assert fresh.json()["id"] != job["id"] and fresh.json()["state"] == "queued"
 
 
+def test_role_files_are_stored_under_their_safe_names(accepting: Service) -> None:
+    """A client's file name becomes a file name inside its role's folder only after it is made safe: no path
+    parts, no hidden names, only [A-Za-z0-9._-], and the extension of the format its bytes show."""
+    files = material() | {"albedo": ("../../My Color (final).PNG", material()["albedo"][1], "image/png"),
+                          "normal": (".hidden", material()["normal"][1], "image/png"),
+                          "roughness": ("rough.jpg", material()["roughness"][1], "image/png")}
+    response = accepting.server.client.post("/v1/jobs", files=files, data=options({"seed": 7}))
+    assert response.status_code == 202, response.text
+    job = response.json()
+    stored = accepting.data_dir / "inputs" / job["id"]
+    assert sorted(str(p.relative_to(stored)) for p in stored.glob("*/*")) == [
+        "albedo/My_Color_final.PNG", "metalness/Chainmail004_1K_Metalness.png", "normal/hidden.png",
+        "roughness/rough.png"]
+    assert job["name"] == "My_Color_final"
+    shown = {f["role"]: f["name"] for f in job["inputs"]}
+    assert shown["normal"] == ".hidden" and shown["roughness"] == "rough.jpg"  # as sent: for display only
+    assert accepting.server.stored(job["id"]).inputs[0].stored_as == "albedo/My_Color_final.PNG"
+
+
 def test_openapi_and_docs_are_served(accepting: Service) -> None:
     schema = accepting.server.client.get("/openapi.json")
     assert schema.status_code == 200, schema.text
     assert {"/v1/jobs", "/v1/jobs/{job_id}", "/metrics"} <= set(schema.json()["paths"])
+    # The documented job is the public one (docs/SERVICE.md describes the same fields).
+    assert set(schema.json()["components"]["schemas"]["JobView"]["properties"]) == PUBLIC_JOB_FIELDS
+    assert "Job" not in schema.json()["components"]["schemas"]
     docs = accepting.server.client.get("/docs")
     assert docs.status_code == 200 and "swagger" in docs.text.lower()

@@ -30,7 +30,7 @@ def test_a_dotenv_file_in_the_working_directory_is_read(tmp_path: Path, monkeypa
     monkeypatch.chdir(tmp_path)
     settings = Settings()
     assert settings.data_dir == tmp_path / "d" and settings.farm_mode
-    assert settings.artifacts_dir == tmp_path / "d" / "artifacts"
+    assert settings.uploads_dir == tmp_path / "d" / "uploads"
 
 
 def test_a_queue_url_that_is_not_redis_is_rejected() -> None:

@@ -1,0 +1,84 @@
+"""Job creation: a material's files, already on disk, -> a validated job with its inputs stored, in the queue.
+
+The submitter (the HTTP service) stages the files, keeps its protocol's concerns to itself and words the
+`bcf.core.InputError`s raised here for its users. Inputs are stored as `<role>/<file name>`, so messages that
+name files (`the files differ in size: a.png 64x64, ...`) name them as the submitter's client knows them.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+import uuid
+from pathlib import Path
+from typing import Optional
+
+from pydantic import BaseModel, ConfigDict
+
+from bcf.core import (InputError, JobOptions, MaterialFiles, Role, TextureSet, load_texture_set, resolve_material,
+                      result_identity)
+from bcf.jobs.queue import JobQueue
+from bcf.jobs.records import InputFile, Job
+
+__all__ = ["StagedMaterial", "load_job_material", "submit_material"]
+
+
+class StagedMaterial(BaseModel):
+    """One material's files on disk, per role or in a folder where their names give the roles (as for
+    `bcf compress FOLDER`). Submitting moves the files used into the job's inputs."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    files: dict[Role, Path] = {}
+    folder: Optional[Path] = None
+    name: Optional[str] = None  # the job's name; None: the albedo file's stem
+    client_names: dict[Role, str] = {}  # the names the client gave the files of `files`, shown back only
+
+
+def _new_job(material: StagedMaterial, files: dict[Role, Path], texture_set: TextureSet, options: JobOptions) -> Job:
+    """The job's record. Its input key hashes what decides the result (`bcf.core.result_identity`: the inputs'
+    bytes by role, the normal convention and size they were loaded with, the resolved options without the
+    device) and the baselines, not the names: the same files under other names are the same job."""
+    source = texture_set.source
+    hashes = {f.role: f.sha256 for f in source.files}
+    resolved = options.model_copy(update={"normal_convention": source.normal_convention})
+    identity = result_identity(hashes, source.normal_convention, (source.width, source.height),
+                               resolved.compress_options())
+    key = json.dumps({"result": identity.key(), "baselines": sorted(resolved.baselines)}, sort_keys=True)
+    inputs = [InputFile(role=role, name=material.client_names.get(role, path.name), stored_as=f"{role}/{path.name}",
+                        sha256=hashes[role], bytes=path.stat().st_size) for role, path in files.items()]
+    return Job(id=uuid.uuid4().hex[:16], name=source.name, options=resolved, inputs=inputs,
+               input_key=hashlib.sha256(key.encode()).hexdigest(), notes=list(texture_set.notes))
+
+
+def submit_material(queue: JobQueue, material: StagedMaterial, options: JobOptions) -> tuple[Job, bool]:
+    """Validate the material completely (roles, headers, sizes, a full decode, as `bcf compress`), store its
+    inputs, queue the job: (job, created). Resubmitting a queued, running or succeeded job's inputs and options
+    returns that job. Raises `bcf.core.InputError` for whatever the client must fix."""
+    if "device" in options.model_fields_set:  # any worker may take the job: the device is the worker's
+        raise InputError("{} is chosen by the worker that runs the job ('bcf worker --device')",
+                         fix="remove it from the options", options=["device"])
+    resolved = resolve_material(material.folder, MaterialFiles(**material.files,
+                                                               normal_convention=options.normal_convention))
+    files = resolved.roles()
+    job = _new_job(material, files, load_texture_set(resolved, name=material.name), options)
+    folder = queue.inputs_path(job.id)
+    try:  # inputs in place before the job is queued: a worker may start it at once
+        for stored in job.inputs:
+            (folder / stored.role).mkdir(parents=True)
+            files[stored.role].rename(folder / stored.stored_as)  # staging shares the data directory's disk
+        stored_job, created = queue.submit(job)
+    except BaseException:
+        shutil.rmtree(folder, ignore_errors=True)
+        raise
+    if not created:
+        shutil.rmtree(folder, ignore_errors=True)  # the existing job has its own copy
+    return stored_job, created
+
+
+def load_job_material(job: Job, inputs: Path) -> TextureSet:
+    """The job's texture set from its stored inputs (`inputs` is the job's folder, `queue.inputs_path`)."""
+    files = MaterialFiles(**{f.role: inputs / f.stored_as for f in job.inputs},
+                          normal_convention=job.options.normal_convention)
+    return load_texture_set(files, name=job.name)
