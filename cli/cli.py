@@ -77,8 +77,8 @@ def build_app() -> App:
     # errors never load torch.
     from bcf import batch_cli, bc6h_cli, material_cli, preview_cli, service_cli
 
-    def summary(command: Callable[..., int]) -> str:
-        return (command.__doc__ or "").strip().splitlines()[0].rstrip(".")
+    def summary(command: Callable[..., int]) -> str:  # the docstring's first clause: one line on the top page
+        return re.split(r" \(|:", (command.__doc__ or "").strip().splitlines()[0])[0].rstrip(".")
 
     # Plain text for the top page, so its list of bc6h commands keeps its lines; Markdown for the commands' own
     # pages, so their docstrings' paragraphs are re-wrapped to the terminal.

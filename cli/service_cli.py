@@ -13,7 +13,6 @@ import subprocess
 import sys
 from typing import Annotated, Optional
 
-from cyclopts import Parameter
 from cyclopts.types import NonNegativeInt, PositiveInt
 
 from bcf.core import CompressOptions, InputError

@@ -16,7 +16,6 @@ import OpenImageIO as oiio
 import pytest
 
 from bcf.core import load_export
-from bcf.core.export import artifacts as export
 from bcf.core.material.assets import FoundMaterial
 from bcf.jobs.batch import _output_names
 from bcf_command import BCF, ONE_THREAD_ENV, run_bcf

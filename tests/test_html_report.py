@@ -23,9 +23,8 @@ import torch
 import torch.nn.functional as F
 from matplotlib.image import imread
 
-from bcf.core import load_export
+from bcf.core import files, load_export
 from bcf.core import pipeline as compress
-from bcf.core.export import artifacts as export
 from bcf.core.report import html as html_report
 from bcf.core.report import metrics
 from bcf.core.report import report_json as report
@@ -247,7 +246,7 @@ def test_write_is_atomic(material: Material, tmp_path: Path, monkeypatch: pytest
     def fail(*_: object) -> None:
         raise OSError("disk full")
 
-    monkeypatch.setattr(html_report.os, "replace", fail)
+    monkeypatch.setattr(files.os, "replace", fail)  # the one atomic write, `bcf.core.files.atomic_path`
     with pytest.raises(OSError, match="disk full"):
         write_html_report(path, material.report, material.ours_only)
     assert path.read_text(encoding="utf-8") == first, "a failed write must leave the previous page"

@@ -16,7 +16,6 @@ import pytest
 from bcf.core import load_export
 from bcf.core.codec import bc6h
 from bcf.core.codec import containers
-from bcf.core.export import artifacts as export
 from bcf_command import run_bcf
 from reference_decoders import decode_with_oiio
 from service_harness import TINY_OPTIONS, BcfEnvironment, tiny_material

@@ -11,7 +11,6 @@ from typing import Any
 import pytest
 
 from bcf.core import load_export
-from bcf.core.export import artifacts as export
 from service_harness import TINY_OPTIONS, BcfEnvironment, material_zip, redis_server, tiny_material
 
 
