@@ -11,18 +11,17 @@ from __future__ import annotations
 import ctypes
 import os
 import sys
-from typing import Any, Literal, Optional, Sequence
+from typing import Any, Optional, Sequence
 
 import numpy as np
 
-from bcf.core import BC6HTexture
+from bcf.core import Address, BC6HTexture
 
 __all__ = ["BPTC_EXTENSION", "GLUnavailable", "HeadlessGL"]
 
 BPTC_EXTENSION = "GL_ARB_texture_compression_bptc"
 GL_COMPRESSED_RGB_BPTC_SIGNED_FLOAT = 0x8E8E
 GL_COMPRESSED_RGB_BPTC_UNSIGNED_FLOAT = 0x8E8F
-Address = Literal["wrap", "clamp"]
 
 _VERTEX = """#version 330 core
 in vec2 position;

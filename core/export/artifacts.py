@@ -19,7 +19,7 @@ from bcf.core.codec import containers
 from bcf.core.errors import InputError
 from bcf.core.fit.model import FEATURE_CHANNELS, BlockFeatures, Decoder, NeuralMaterial
 from bcf.core.material.texture_set import MaterialSource
-from bcf.core.options import ResolvedOptions
+from bcf.core.options import Address, ResolvedOptions
 from bcf.core.version import GENERATOR
 
 __all__ = ["DECODER_FILE", "MANIFEST_FILE", "ExportError", "Manifest", "feature_file", "read_manifest",
@@ -87,7 +87,7 @@ class Manifest(_Strict):
     width: int  # of the source material
     height: int
     mips: int  # material mip levels the model was trained on: scales s in [0, mips - 1]
-    address: Literal["wrap", "clamp"]
+    address: Address
     feature_textures: list[FeatureTextureEntry]
     decoder: DecoderEntry
     outputs: list[OutputEntry]

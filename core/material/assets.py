@@ -17,17 +17,18 @@ import re
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
-from typing import Literal, Optional
+from typing import Optional, Union
 
 import pydantic
 
 from bcf.core.material.naming import NOISE_TOKENS, choose_roles, classify_name, join_names, missing_roles, scan_files
-from bcf.core.material.roles import IMAGE_EXTENSIONS, ROLES, MaterialError, MaterialFiles, NormalConvention
+from bcf.core.material.roles import (IMAGE_EXTENSIONS, ROLES, ExtraRole, MaterialError, MaterialFiles, NormalConvention,
+                                     Role)
 from bcf.core.material.texture_set import read_header
 
 __all__ = ["AssetRole", "AssetScan", "FoundMaterial", "Unplaced", "scan_assets"]
 
-AssetRole = Literal["albedo", "normal", "arm", "ao", "roughness", "metalness", "opacity", "height"]
+AssetRole = Union[Role, ExtraRole]  # the maps bcf compresses and those a scan lists beside them
 
 # Folders that hold no materials: archive and OS clutter (hidden names, starting with ".", are skipped too).
 _SKIPPED_FOLDERS = frozenset({"__macosx", "__pycache__", "$recycle.bin", "system volume information"})
