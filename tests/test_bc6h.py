@@ -201,6 +201,27 @@ def test_differentiable_decode_forward_is_bit_exact(regions: int, signed: bool) 
     assert np.array_equal(values.numpy().astype(np.float16).view(np.uint16), reference.view(np.uint16))
 
 
+def test_closed_form_mode11_decode_matches_autograd() -> None:
+    """The default mode's fused decode (closed-form backward) gives the values of the general autograd path bit
+    for bit and its gradients to float rounding, for out-of-range parameters and rounding ties too."""
+    rng = np.random.default_rng(41)
+    n = 20_000
+    endpoints = torch.tensor(rng.uniform(-3.0, 1026.0, (n, 1, 2, 3)), dtype=torch.float32)
+    endpoints[: n // 4] = torch.floor(endpoints[: n // 4]) + 0.5  # ties round up in both
+    weights = torch.tensor(rng.uniform(-0.1, 1.1, (n, 16)), dtype=torch.float32)
+    upstream = torch.tensor(rng.normal(size=(n, 16, 3)), dtype=torch.float32)
+    results = []
+    for decode in (block_decode.decode_blocks_differentiable, block_decode._decode_autograd):
+        e, w = endpoints.clone().requires_grad_(), weights.clone().requires_grad_()
+        values = decode(e, w, None, False)
+        values.backward(upstream)
+        results.append((values.detach(), e.grad, w.grad))
+    (fused, e_fused, w_fused), (general, e_general, w_general) = results
+    assert torch.equal(fused, general)
+    torch.testing.assert_close(e_fused, e_general, rtol=1e-5, atol=1e-6 * float(e_general.abs().max()))
+    torch.testing.assert_close(w_fused, w_general, rtol=1e-5, atol=1e-6 * float(w_general.abs().max()))
+
+
 @pytest.mark.parametrize("signed", [False, True], ids=["UF16", "SF16"])
 def test_differentiable_decode_gradients_fit_a_target(signed: bool) -> None:
     """Gradients are finite and useful: Adam through the emulated decode fits two-segment target blocks."""

@@ -60,6 +60,15 @@ def decode_blocks_differentiable(endpoints: torch.Tensor, weights: torch.Tensor,
     unquantize/interpolate/finish of eq. 7-8 (without floors), then the exact slope of eq. 9.
     """
     spec = mode_for_regions(endpoints.shape[-3])
+    if spec.regions == 1 and not signed:
+        return _OneRegionDecode.apply(endpoints, weights)
+    return _decode_autograd(endpoints, weights, partition, signed)
+
+
+def _decode_autograd(endpoints: torch.Tensor, weights: torch.Tensor, partition: torch.Tensor | None,
+                     signed: bool) -> torch.Tensor:
+    """`decode_blocks_differentiable` for any mode, its backward left to autograd."""
+    spec = mode_for_regions(endpoints.shape[-3])
     bits, q = spec.endpoint_bits, spec.index_bits
     device = endpoints.device
     subset = None
@@ -94,3 +103,38 @@ def decode_blocks_differentiable(endpoints: torch.Tensor, weights: torch.Tensor,
     return torch.where(c < 0, -value, value) if signed else value
 
 
+
+
+class _OneRegionDecode(torch.autograd.Function):
+    """Mode 11, UF16 (the default preset's blocks): the forward and backward of `_decode_autograd` in closed
+    form, so no (n, 16, 3) intermediate is kept for autograd but the slope of eq. 9. Same values, same
+    gradients (up to float rounding order); tests/test_bc6h.py compares the two."""
+
+    @staticmethod
+    def forward(ctx, endpoints: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+        """endpoints (..., 1, 2, 3), weights (..., 16) -> (..., 16, 3) texel values."""
+        e_round = quantize_endpoints(endpoints, 10, False)
+        index = quantize_weights(weights, 4)
+        # The decoder's integer pipeline (`unquantize`, `interpolate`, `finish_magnitude`) in float32, where
+        # every intermediate is an integer below 2^24 and so exact: half the memory traffic of int64.
+        ends = torch.where(e_round >= 1023.0, 65535.0, torch.where(e_round > 0, e_round * 64.0 + 32.0, 0.0))
+        weight = torch.as_tensor(WEIGHTS_4BIT, dtype=torch.float32, device=endpoints.device)[index.long()]
+        weight = weight.unsqueeze(-1)  # (..., 16, 1)
+        c = torch.floor((ends[..., 0, 0:1, :] * (64.0 - weight) + ends[..., 0, 1:2, :] * weight + 32.0) / 64.0)
+        magnitude = torch.floor(c * (31.0 / 64.0))  # exact: c * 31 < 2^24, and / 64 is exact
+        exponent = torch.clamp(torch.floor(magnitude / 1024.0) - 1.0, min=0.0)  # h(v) of eq. 9
+        scale = torch.exp2(exponent - 14.0)
+        # The surrogate's slope: d value / d c = 2^(h-14) / 1024 (eq. 9) * 31/64 (finish), eq. 7-8 for the rest.
+        ctx.save_for_backward(scale, index, e_round)
+        return scale * (magnitude / 1024.0 - exponent)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        scale, index, e_round = ctx.saved_tensors
+        d_c = grad * scale * (31.0 / 64.0 / 1024.0)  # (..., 16, 3)
+        w = (index / 15.0).unsqueeze(-1)  # the straight-through weights' forward value
+        # c = a + (b - a) w with a, b = e * 2^6 + 2^5 (eq. 7, continuous): straight-through to the parameters.
+        d_second = (d_c * w).sum(-2)
+        d_first = d_c.sum(-2) - d_second
+        span = (e_round[..., 0, 1, :] - e_round[..., 0, 0, :]).unsqueeze(-2)  # (b - a) / 64
+        return torch.stack([d_first, d_second], -2).unsqueeze(-3) * 64.0, (d_c * span).sum(-1) * 64.0
