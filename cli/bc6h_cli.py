@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Annotated, Literal, Optional, Sequence
 from cyclopts import Parameter
 from cyclopts.types import NonNegativeInt, PositiveInt
 
-from bcf.cli import EXCLUSIVE, Output, check_output, say
+from bcf.cli import EXCLUSIVE, Output, check_output_file, say
 from bcf.core import InputError
 
 if TYPE_CHECKING:
@@ -61,7 +61,7 @@ def encode(image: Path, /, *, output: Output, mode: Literal[10, 11] = 10, signed
     from bcf.core import (atomic_path, encode_mips, format_name, full_mip_count, mip_chain, read_rgb, to_bc6h_range,
                           write_dds, write_ktx2)
 
-    container = CONTAINER_WRITERS[check_output(output, tuple(CONTAINER_WRITERS), "texture")]
+    container = CONTAINER_WRITERS[check_output_file(output, tuple(CONTAINER_WRITERS), "texture")]
     source = read_rgb(image)
     height, width = source.shape[:2]
     full = full_mip_count(width, height)
@@ -112,7 +112,7 @@ def decode(file: Path, /, *, output: Output, level: NonNegativeInt = 0) -> int:
     """
     from bcf.core import WRITE_EXTENSIONS, atomic_path, decode_image, write_rgb
 
-    suffix = check_output(output, tuple(WRITE_EXTENSIONS), "image")
+    suffix = check_output_file(output, tuple(WRITE_EXTENSIONS), "image")
     texture = _read_texture(file)
     if level >= len(texture.levels):
         raise InputError(f"--level {level} does not exist; the file has levels 0..{len(texture.levels) - 1}",

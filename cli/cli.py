@@ -58,7 +58,7 @@ def clock(seconds: float) -> str:
     return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
 
 
-def check_output(path: Path, allowed: Sequence[str], what: str) -> str:
+def check_output_file(path: Path, allowed: Sequence[str], what: str) -> str:
     """Fail early (before any work) on an output file that cannot be right; returns its lower-case suffix."""
     suffix = path.suffix.lower()
     if suffix not in allowed:

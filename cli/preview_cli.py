@@ -9,7 +9,7 @@ from typing import Annotated, Optional
 from cyclopts import Parameter
 from cyclopts.types import PositiveInt
 
-from bcf.cli import Output, check_output, say
+from bcf.cli import Output, check_output_file, say
 from bcf.core import InputError
 from bcf.engine.preview import DEFAULT_LIGHT, MAX_SIZE, MIN_SIZE  # no torch: --help stays instant
 
@@ -36,7 +36,7 @@ def preview(folder: Path, /, *, output: Output, source: Optional[Path] = None, s
         light_elevation: light height above the horizon in degrees, -90 to 90
     """
     # The cheap checks first: bad arguments fail before torch and OpenGL load.
-    check_output(output, (".png",), "image")
+    check_output_file(output, (".png",), "image")
     if not MIN_SIZE <= size <= MAX_SIZE:
         raise InputError(f"--size must be in [{MIN_SIZE}, {MAX_SIZE}], got {size}")
     if not -90.0 <= light_elevation <= 90.0:

@@ -22,7 +22,7 @@ from typing import Any
 
 _PUBLIC: dict[str, tuple[str, ...]] = {
     "bcf.core.version": ("GENERATOR", "__version__"),
-    "bcf.core.errors": ("InputError",),
+    "bcf.core.errors": ("InputError", "failure_text"),
     "bcf.core.files": ("atomic_path", "file_sha256", "replace_folder", "staging_folder", "staging_leftovers",
                        "write_text_atomic"),
     "bcf.core.psnr": ("psnr_from_mse",),

@@ -10,7 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Callable, Optional, Sequence, Union
 
-__all__ = ["InputError"]
+__all__ = ["InputError", "failure_text"]
 
 OptionWording = Callable[[Sequence[str]], str]
 OptionGroup = Union[str, Sequence[str]]
@@ -42,7 +42,16 @@ class InputError(ValueError):
         """One line: `<file>: <reason> (<fix>)`, with the options and the file worded by the caller."""
         text = self.reason + (f" ({self.fix})" if self.fix else "")
         # Fill each "{}" in turn; other braces (a file name may hold some) stay as they are.
-        parts = text.split("{}")
-        worded = [options(group) for group in self.options]
-        text = parts[0] + "".join(w + rest for w, rest in zip(worded + [""] * len(parts), parts[1:]))
+        if self.options:
+            first, *rest = text.split("{}")
+            worded = [options(group) for group in self.options] + [""] * len(rest)
+            text = first + "".join(option + part for option, part in zip(worded, rest))
         return f"{file(self.file)}: {text}" if self.file is not None else text
+
+
+def failure_text(exc: BaseException, file: Callable[[Union[Path, str]], str] = str) -> str:
+    """One line for a compression that failed (a batch item, a job's `error`): an input problem as its message
+    with files worded by `file`, any other error with its type, since then it is bcf's fault, not the input's."""
+    if isinstance(exc, InputError):
+        return exc.message(file=file)
+    return str(exc) if isinstance(exc, (ValueError, OSError)) else f"{type(exc).__name__}: {exc}"

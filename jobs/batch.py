@@ -23,8 +23,8 @@ from typing import Callable, Literal, Optional, Sequence
 from pydantic import BaseModel
 
 from bcf.core import (GENERATOR, MANIFEST_FILE, AssetScan, FoundMaterial, JobOptions, MaterialError, MaterialFiles,
-                      OutputExistsError, Report, ReportError, TrainingProgress, compress_material, file_sha256,
-                      is_current, load_texture_set, read_report, result_identity, write_text_atomic)
+                      OutputExistsError, Report, ReportError, TrainingProgress, compress_material, failure_text,
+                      file_sha256, is_current, load_texture_set, read_report, result_identity, write_text_atomic)
 
 __all__ = ["BATCH_SUMMARY_FILE", "BatchItem", "BatchMaterial", "BatchSummary", "MaterialEvent", "format_summary",
            "plan_batch", "previous_result", "run_local", "split_done", "summarise", "write_summary"]
@@ -159,10 +159,6 @@ def check_replaceable(output: Path) -> None:
 # ------------------------------------------------------------------------------------------------ local
 
 
-def _error_text(exc: BaseException) -> str:
-    return str(exc) if isinstance(exc, (ValueError, OSError)) else f"{type(exc).__name__}: {exc}"
-
-
 def compress_one(entry: BatchMaterial, options: JobOptions,
                  on_progress: Optional[Callable[[TrainingProgress], None]] = None,
                  on_stage: Optional[Callable[[str], None]] = None) -> BatchItem:
@@ -176,7 +172,7 @@ def compress_one(entry: BatchMaterial, options: JobOptions,
         rep = compress_material(texture_set, options.compress_options(), entry.output, progress=on_progress,
                                 overwrite=True, baselines=options.baselines, note=on_stage)
     except Exception as exc:  # one material's failure is reported, the batch goes on
-        return entry.item("failed", error=_error_text(exc), seconds=round(time.perf_counter() - started, 2))
+        return entry.item("failed", error=failure_text(exc), seconds=round(time.perf_counter() - started, 2))
     return result_item(entry, rep, "compressed", time.perf_counter() - started)
 
 
@@ -231,7 +227,7 @@ def run_local(todo: Sequence[BatchMaterial], options: JobOptions, jobs: int = 1,
                         try:
                             item = future.result()
                         except Exception as exc:  # the worker process itself died: nobody announced the end
-                            item = entry.item("failed", error=f"worker process failed: {_error_text(exc)}")
+                            item = entry.item("failed", error=f"worker process failed: {failure_text(exc)}")
                             messages.put(MaterialEvent(entry.found.material, "finished", item=item))
                         done[index] = item
         finally:

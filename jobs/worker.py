@@ -17,7 +17,7 @@ import uuid
 from pathlib import Path
 from typing import Any, Callable, Optional
 
-from bcf.core import InputError, TrainingProgress, TrainingStopped, compress_material, resolve_options
+from bcf.core import TrainingProgress, TrainingStopped, compress_material, failure_text, resolve_options
 from bcf.jobs.queue import JobQueue
 from bcf.jobs.records import Job, JobProgress, JobResult, utc_now
 from bcf.jobs.settings import Settings
@@ -28,13 +28,6 @@ __all__ = ["Worker"]
 
 log = logging.getLogger("bcf.worker")
 SHUTDOWN_GRACE_S = 10.0
-
-
-def _job_error(exc: Exception) -> str:
-    """A failed job's `error`, read by clients of the service: files by their names, never the server's paths."""
-    if isinstance(exc, InputError):
-        return exc.message(file=lambda path: Path(path).name)
-    return f"{exc}" if isinstance(exc, (ValueError, OSError)) else f"{type(exc).__name__}: {exc}"
 
 
 class _Monitor:
@@ -162,7 +155,7 @@ class Worker:
                 log.info("job %s: cancelled", job.id)
                 return
             except Exception as exc:  # any failure of one job is that job's, not the worker's
-                message = _job_error(exc)
+                message = failure_text(exc, file=lambda path: Path(path).name)  # never server paths
                 self._update_held(job.id, lambda held: held.ended("failed", monitor.progress, error=message))
                 log.error("job %s: failed: %s\n%s", job.id, message, traceback.format_exc())
                 return

@@ -186,12 +186,12 @@ def _read_bytes(path: StrPath) -> bytes:
     try:
         return Path(path).read_bytes()
     except OSError as exc:
-        raise ContainerError(f"{path}: cannot read file: {exc}") from exc
+        raise ContainerError(f"cannot read file: {exc}", file=path) from exc
 
 
 def _require(condition: bool, path: StrPath, problem: str) -> None:
     if not condition:
-        raise ContainerError(f"{path}: {problem}")
+        raise ContainerError(problem, file=path)
 
 
 def _unpack(fmt: str, data: bytes, offset: int, path: StrPath, what: str) -> tuple:
@@ -455,4 +455,4 @@ def read_texture(path: StrPath) -> BC6HTexture:
         return _parse_dds(path, data)
     if data.startswith(KTX2_IDENTIFIER):
         return _parse_ktx2(path, data)
-    raise ContainerError(f"{path}: neither a DDS nor a KTX2 file (starts with {data[:12]!r})")
+    raise ContainerError(f"neither a DDS nor a KTX2 file (starts with {data[:12]!r})", file=path)

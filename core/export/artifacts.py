@@ -154,14 +154,14 @@ def read_manifest(directory: Path) -> Manifest:
     """manifest.json of an export folder; ExportError for a folder that is not one."""
     path = Path(directory) / MANIFEST_FILE
     if not Path(directory).is_dir():
-        raise ExportError(f"{directory}: not a directory")
+        raise ExportError("not a directory", file=directory)
     if not path.is_file():
-        raise ExportError(f"{path}: missing; is {directory} a 'bcf compress' output folder?")
+        raise ExportError(f"missing; is {directory} a 'bcf compress' output folder?", file=path)
     try:
         return Manifest.model_validate(json.loads(path.read_text()))
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ExportError(f"{path}: not valid JSON: {exc}") from None
+        raise ExportError(f"not valid JSON: {exc}", file=path) from None
     except ValidationError as exc:
         first = exc.errors()[0]
         where = ".".join(str(p) for p in first["loc"])
-        raise ExportError(f"{path}: not a bcf manifest ({where}: {first['msg']})") from None
+        raise ExportError(f"not a bcf manifest ({where}: {first['msg']})", file=path) from None

@@ -42,10 +42,10 @@ class ExportedMaterial:
 
 def _read_checked(path: Path, sha256: str) -> bytes:
     if not path.is_file():
-        raise ExportError(f"{path}: missing")
+        raise ExportError("missing", file=path)
     data = path.read_bytes()
     if sha256_hex(data) != sha256:
-        raise ExportError(f"{path}: contents do not match the manifest's sha256 (modified or corrupt)")
+        raise ExportError("contents do not match the manifest's sha256 (modified or corrupt)", file=path)
     return data
 
 
@@ -58,9 +58,9 @@ def _read_feature_texture(directory: Path, entry: FeatureTextureEntry) -> list[t
         raise ExportError(str(exc)) from None
     found = (texture.width, texture.height, len(texture.levels), texture.signed)
     if found != (entry.width, entry.height, entry.mips, False):
-        raise ExportError(f"{path}: {texture.width}x{texture.height}, {len(texture.levels)} mips, "
+        raise ExportError(f"{texture.width}x{texture.height}, {len(texture.levels)} mips, "
                           f"{'SF16' if texture.signed else 'UF16'}; the manifest says {entry.width}x"
-                          f"{entry.height}, {entry.mips} mips, UF16")
+                          f"{entry.height}, {entry.mips} mips, UF16", file=path)
     levels = []
     for number, blocks in enumerate(texture.levels):
         w, h = containers.mip_size(texture.width, texture.height, number)
@@ -76,7 +76,8 @@ def _read_decoder(directory: Path, entry: DecoderEntry) -> Decoder:
     for layer in entry.layers:
         end = layer.bias_offset + layer.outputs
         if end > values.size:
-            raise ExportError(f"{directory / entry.file}: {values.size} fp16 values, the manifest's layers need {end}")
+            raise ExportError(f"{values.size} fp16 values, the manifest's layers need {end}",
+                              file=directory / entry.file)
         w = values[layer.weight_offset:layer.weight_offset + layer.inputs * layer.outputs]
         b = values[layer.bias_offset:end]
         layers.append((torch.from_numpy(w.astype(np.float32).reshape(layer.outputs, layer.inputs)),
@@ -118,7 +119,6 @@ def render_region(decoder: DecoderFunction, width: int, height: int, s: float, x
     gy, gx = torch.meshgrid(ys, xs, indexing="ij")
     uv = torch.stack([gx.reshape(-1), gy.reshape(-1)], dim=1)
     return decoder(uv, s).T.reshape(-1, size, size)
-
 
 
 def decoded_file_names(mip: int, extension: str) -> dict[str, str]:

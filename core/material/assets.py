@@ -95,7 +95,7 @@ def scan_assets(root: Path) -> AssetScan:
     """
     root = Path(root)
     if not root.is_dir():
-        raise MaterialError(f"{root}: {'not a folder' if root.exists() else 'no such folder'}")
+        raise MaterialError(f"{'not a folder' if root.exists() else 'no such folder'}", file=root)
     materials: list[FoundMaterial] = []
     unplaced: list[Unplaced] = []
     for folder, images in _walk(root):

@@ -191,10 +191,10 @@ def read_report(path: Path) -> Report:
     path = Path(path)
     file = path / REPORT_FILE if path.is_dir() else path
     if not file.is_file():
-        raise ReportError(f"{file}: no such file")
+        raise ReportError("no such file", file=file)
     try:
         return Report.model_validate_json(file.read_bytes())
     except ValidationError as exc:
         first = exc.errors()[0]
         where = ".".join(str(p) for p in first["loc"]) or "(top level)"
-        raise ReportError(f"{file}: not a bcf report ({where}: {first['msg']})") from None
+        raise ReportError(f"not a bcf report ({where}: {first['msg']})", file=file) from None
