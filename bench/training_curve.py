@@ -8,6 +8,10 @@ excluded from the wall-clock column.
 
     .venv/bin/python bench/training_curve.py ../shared/materials/wood_peeling_paint_weathered \
         --preset default --phase2-iterations 10000 --eval-every 1000 -o bench/results/curve_wood.json
+
+A material inside a folder with an index.json (../shared/materials) is read through the index, as `bcf bench`
+reads it (roles, normal convention, wrap or clamp addressing); --max-size box-filters it down as `bcf bench
+--max-size` does.
 """
 
 from __future__ import annotations
@@ -17,12 +21,24 @@ import json
 import time
 from pathlib import Path
 
-from bcf.core.material.texture_set import load_material
+from bcf.core.material.texture_set import TextureSet, load_material, load_texture_set
+from bcf.jobs.bench import INDEX_FILE, downscale, find_materials
 from bcf.core.report import metrics
 from bcf.core.report import report_json as report
 from bcf.core.fit import training
 from bcf.core.options import CompressOptions, resolve_options
 from bcf.core.fit.sampling import ReferenceMaterial
+
+
+def _load(path: Path, max_size: int | None) -> tuple[TextureSet, str | None]:
+    """The material at `path` and its addressing from the index (None: the preset's), downscaled to max_size."""
+    address = None
+    if (path.parent / INDEX_FILE).is_file():
+        entry = find_materials(path.parent, [path.name])[0]
+        texture_set, address = load_texture_set(entry.files, entry.name), entry.address
+    else:
+        texture_set = load_material(path)
+    return (downscale(texture_set, max_size) if max_size else texture_set), address
 
 
 def main() -> None:
@@ -34,6 +50,7 @@ def main() -> None:
     parser.add_argument("--phase2-iterations", type=int)
     parser.add_argument("--block-mode", type=int, choices=(10, 11))
     parser.add_argument("--batch-size", type=int)
+    parser.add_argument("--max-size", type=int, help="box-filter the material down to at most this size")
     parser.add_argument("--eval-every", type=int, default=1000)
     parser.add_argument("--rescale-decay", action="store_true",
                         help="recompute both decays so the learning rates end where the preset's do (8.2 %% and "
@@ -42,12 +59,12 @@ def main() -> None:
     parser.add_argument("-o", "--output", type=Path)
     args = parser.parse_args()
 
-    texture_set = load_material(args.material)
+    texture_set, address = _load(args.material, args.max_size)
     overrides = {k: v for k, v in {"phase1_iterations": args.phase1_iterations,
                                    "phase2_iterations": args.phase2_iterations, "block_mode": args.block_mode,
                                    "batch_size": args.batch_size}.items() if v is not None}
     options = resolve_options(CompressOptions(preset=args.preset, features=args.features, device=args.device,
-                                              **overrides))
+                                              **overrides, **({"address": address} if address else {})))
     if args.rescale_decay:
         options = options.model_copy(update={
             "decay_phase1": 0.082 ** (1 / max(options.phase1_iterations, 1)),
