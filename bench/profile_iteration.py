@@ -20,22 +20,23 @@ import torch
 from bcf.core.material.texture_set import load_material
 from bcf.core.fit import model as nm
 from bcf.core.fit import training
-from bcf.core.options import CompressOptions, resolve_options
+from bcf.core.fit.batches import BatchSampler
+from bcf.core.options import CompressOptions, ResolvedOptions, resolve_options
 from bcf.core.fit.sampling import ReferenceMaterial, trilinear_levels
 
 
-def time_iterations(model: nm.NeuralMaterial, reference: ReferenceMaterial, batch: int, iterations: int,
-                    lr: float) -> dict[str, float]:
+def time_iterations(model: nm.NeuralMaterial, reference: ReferenceMaterial, options: ResolvedOptions,
+                    iterations: int, lr: float) -> dict[str, float]:
     optimizer = torch.optim.Adam(model.parameters(), lr=lr)
     generator = torch.Generator().manual_seed(0)
+    batches = BatchSampler(reference, options.batch_size, options.continuous_fraction, options.mip_power,
+                           generator, generator)
     parts: dict[str, float] = defaultdict(float)
     for _ in range(iterations):
-        s = float(torch.rand((), generator=generator)) * (reference.levels - 1)
-        uv = torch.rand((batch, 2), generator=generator)
         t = time.perf_counter()
-        with torch.no_grad():
-            target = reference.sample(uv, s)
-        parts["reference sampling"] += time.perf_counter() - t
+        batch = batches()
+        uv, s, target = batch.uv, batch.s, batch.target
+        parts["batch: points + reference"] += time.perf_counter() - t
         t = time.perf_counter()
         if isinstance(model.features, nm.BlockFeatures):
             # Decode the levels this s needs once, then sample through a cache, to time the two apart.
@@ -78,19 +79,22 @@ def main() -> None:
     parser.add_argument("--features", default="1k")
     parser.add_argument("--iterations", type=int, default=20)
     parser.add_argument("--block-mode", type=int, choices=(10, 11))
+    parser.add_argument("--set", action="append", default=[], metavar="OPTION=VALUE",
+                        help="any other CompressOptions field, e.g. --set continuous_fraction=0.25")
     args = parser.parse_args()
     texture_set = load_material(args.material)
     extra = {"block_mode": args.block_mode} if args.block_mode else {}
+    extra.update(item.split("=", 1) for item in args.set)
     options = resolve_options(CompressOptions(preset=args.preset, features=args.features, phase1_iterations=20,
                                               phase2_iterations=1, **extra))
     reference = ReferenceMaterial(texture_set.channels, options.address)
     result = training.fit(texture_set, options)
     print(f"{texture_set.source.name} {texture_set.width}x{texture_set.height}, features {options.features}, "
           f"batch {options.batch_size}, torch threads {torch.get_num_threads()}")
-    report("phase 1", time_iterations(result.phase1_model, reference, options.batch_size, args.iterations, 1e-3))
-    report("phase 2", time_iterations(result.model, reference, options.batch_size, args.iterations, 1e-3))
+    report("phase 1", time_iterations(result.phase1_model, reference, options, args.iterations, 1e-3))
+    report("phase 2", time_iterations(result.model, reference, options, args.iterations, 1e-3))
     with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
-        time_iterations(result.model, reference, options.batch_size, 3, 1e-3)
+        time_iterations(result.model, reference, options, 3, 1e-3)
     print("\nphase 2, top operators by self CPU time (3 iterations):")
     print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=12))
 

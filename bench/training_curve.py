@@ -50,6 +50,8 @@ def main() -> None:
     parser.add_argument("--phase2-iterations", type=int)
     parser.add_argument("--block-mode", type=int, choices=(10, 11))
     parser.add_argument("--batch-size", type=int)
+    parser.add_argument("--set", action="append", default=[], metavar="OPTION=VALUE",
+                        help="any other CompressOptions field, e.g. --set continuous_fraction=0.25")
     parser.add_argument("--max-size", type=int, help="box-filter the material down to at most this size")
     parser.add_argument("--eval-every", type=int, default=1000)
     parser.add_argument("--rescale-decay", action="store_true",
@@ -63,6 +65,7 @@ def main() -> None:
     overrides = {k: v for k, v in {"phase1_iterations": args.phase1_iterations,
                                    "phase2_iterations": args.phase2_iterations, "block_mode": args.block_mode,
                                    "batch_size": args.batch_size}.items() if v is not None}
+    overrides.update(item.split("=", 1) for item in args.set)
     options = resolve_options(CompressOptions(preset=args.preset, features=args.features, device=args.device,
                                               **overrides, **({"address": address} if address else {})))
     if args.rescale_decay:

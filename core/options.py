@@ -40,6 +40,11 @@ class TrainingSchedule(BaseModel):
     lr_features_phase2: float = Field(gt=0, description="paper: 1e-2")
     lr_mlp_phase2: float = Field(gt=0, description="paper: 1e-3")
     decay_phase2: float = Field(gt=0, le=1, description="paper: 0.99999")
+    continuous_fraction: float = Field(
+        1.0, ge=0, le=1, description="fraction of steps at continuous (u, v, s) (the paper's, 1); the others "
+        "sample texel centres of one integer mip (bcf.core.fit.batches)")
+    mip_power: float = Field(1.0, ge=0, le=1, description="a texel step picks mip l with probability "
+                             "proportional to texels(l)^mip_power (1: by area, 0: every mip alike)")
     hidden: Literal[16, 32] = Field(description="MLP hidden width (paper: 16 or 32)")
     block_mode: Literal[10, 11] = Field(
         description="BC6H mode of the feature blocks: 10 = two regions, 6-bit endpoints, 3-bit indices "
@@ -96,6 +101,10 @@ class CompressOptions(BaseModel):
     lr_features_phase2: Optional[float] = Field(None, gt=0)
     lr_mlp_phase2: Optional[float] = Field(None, gt=0)
     decay_phase2: Optional[float] = Field(None, gt=0, le=1)
+    continuous_fraction: Optional[float] = Field(None, ge=0, le=1, description="fraction of steps at continuous "
+                                                 "(u, v, s); the others at texel centres (default: the preset's)")
+    mip_power: Optional[float] = Field(None, ge=0, le=1, description="texel steps pick mips by texels^power "
+                                       "(default: the preset's)")
     hidden: Optional[Literal[16, 32]] = Field(None, description="MLP hidden width (default: the preset's)")
     block_mode: Optional[Literal[10, 11]] = Field(None, description="BC6H mode of the feature blocks (default: "
                                                   "the preset's)")

@@ -201,19 +201,26 @@ def test_differentiable_decode_forward_is_bit_exact(regions: int, signed: bool) 
     assert np.array_equal(values.numpy().astype(np.float16).view(np.uint16), reference.view(np.uint16))
 
 
-def test_closed_form_mode11_decode_matches_autograd() -> None:
-    """The default mode's fused decode (closed-form backward) gives the values of the general autograd path bit
-    for bit and its gradients to float rounding, for out-of-range parameters and rounding ties too."""
+def test_closed_form_mode11_level_decode_matches_autograd() -> None:
+    """The default mode's level decode (closed form, image layout) gives the values of the general autograd path
+    bit for bit, arranged as the level's image, and its gradients to float rounding, for out-of-range parameters
+    and rounding ties too."""
     rng = np.random.default_rng(41)
-    n = 20_000
+    bh, bw = 96, 160
+    n = bh * bw
     endpoints = torch.tensor(rng.uniform(-3.0, 1026.0, (n, 1, 2, 3)), dtype=torch.float32)
     endpoints[: n // 4] = torch.floor(endpoints[: n // 4]) + 0.5  # ties round up in both
     weights = torch.tensor(rng.uniform(-0.1, 1.1, (n, 16)), dtype=torch.float32)
-    upstream = torch.tensor(rng.normal(size=(n, 16, 3)), dtype=torch.float32)
+    upstream = torch.tensor(rng.normal(size=(3, 4 * bh, 4 * bw)), dtype=torch.float32)
+
+    def as_image(texels: torch.Tensor) -> torch.Tensor:  # (n, 16, 3) -> (3, h, w), as BlockFeatures.level
+        return texels.view(bh, bw, 4, 4, 3).permute(4, 0, 2, 1, 3).reshape(3, 4 * bh, 4 * bw)
+
     results = []
-    for decode in (block_decode.decode_blocks_differentiable, block_decode._decode_autograd):
+    for decode in (lambda e, w: block_decode.decode_level_one_region(e, w, bh, bw),
+                   lambda e, w: as_image(block_decode.decode_blocks_differentiable(e, w, None, False))):
         e, w = endpoints.clone().requires_grad_(), weights.clone().requires_grad_()
-        values = decode(e, w, None, False)
+        values = decode(e, w)
         values.backward(upstream)
         results.append((values.detach(), e.grad, w.grad))
     (fused, e_fused, w_fused), (general, e_general, w_general) = results

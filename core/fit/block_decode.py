@@ -10,7 +10,7 @@ import torch
 from bcf.core.codec.bc6h import (PARTITION_SUBSETS, WEIGHTS_3BIT, WEIGHTS_4BIT, endpoint_range, finish_magnitude,
                                  interpolate, mode_for_regions, unquantize)
 
-__all__ = ["decode_blocks_differentiable", "half_bits_to_value", "quantize_endpoints", "quantize_weights"]
+__all__ = ["decode_blocks_differentiable", "decode_level_one_region", "half_bits_to_value", "quantize_endpoints", "quantize_weights"]
 
 
 def half_bits_to_value(v: torch.Tensor) -> torch.Tensor:
@@ -57,17 +57,9 @@ def decode_blocks_differentiable(endpoints: torch.Tensor, weights: torch.Tensor,
     Forward: rounds endpoints and weights (`quantize_endpoints`, `quantize_weights`) and runs the decoder's
     integer pipeline, so the result equals, bit for bit, `decode_blocks` of the blocks `encode_mode10/11`
     writes from the rounded parameters. Backward: straight-through rounding and the continuous
-    unquantize/interpolate/finish of eq. 7-8 (without floors), then the exact slope of eq. 9.
+    unquantize/interpolate/finish of eq. 7-8 (without floors), then the exact slope of eq. 9; autograd derives
+    it (`decode_level_one_region` is the same in closed form for the default mode).
     """
-    spec = mode_for_regions(endpoints.shape[-3])
-    if spec.regions == 1 and not signed:
-        return _OneRegionDecode.apply(endpoints, weights)
-    return _decode_autograd(endpoints, weights, partition, signed)
-
-
-def _decode_autograd(endpoints: torch.Tensor, weights: torch.Tensor, partition: torch.Tensor | None,
-                     signed: bool) -> torch.Tensor:
-    """`decode_blocks_differentiable` for any mode, its backward left to autograd."""
     spec = mode_for_regions(endpoints.shape[-3])
     bits, q = spec.endpoint_bits, spec.index_bits
     device = endpoints.device
@@ -103,38 +95,66 @@ def _decode_autograd(endpoints: torch.Tensor, weights: torch.Tensor, partition: 
     return torch.where(c < 0, -value, value) if signed else value
 
 
+def decode_level_one_region(endpoints: torch.Tensor, weights: torch.Tensor, blocks_high: int,
+                            blocks_wide: int) -> torch.Tensor:
+    """`decode_blocks_differentiable` for mode 11, UF16 (the default presets' blocks), returning the whole
+    level as an image: endpoints (bh * bw, 1, 2, 3), weights (bh * bw, 16), blocks row-major over the level,
+    pixels row-major in a block -> (3, 4 bh, 4 bw). Same values bit for bit and the same gradients (up to
+    float rounding order); tests/test_bc6h.py compares the two."""
+    return _OneRegionLevelDecode.apply(endpoints, weights, blocks_high, blocks_wide)
 
 
-class _OneRegionDecode(torch.autograd.Function):
-    """Mode 11, UF16 (the default preset's blocks): the forward and backward of `_decode_autograd` in closed
-    form, so no (n, 16, 3) intermediate is kept for autograd but the slope of eq. 9. Same values, same
-    gradients (up to float rounding order); tests/test_bc6h.py compares the two."""
+def _block_sums(x: torch.Tensor) -> torch.Tensor:
+    """(3, bh, 4, bw, 4) image-layout values -> (3, bh, bw) sums over each block's 16 pixels. A matrix product
+    for the 4 contiguous pixels of a block row is several times faster than torch's reduction over a size-4
+    innermost dimension."""
+    c, bh, _, bw, _ = x.shape
+    ones = torch.ones((4, 1), dtype=x.dtype, device=x.device)
+    return (x.reshape(-1, 4) @ ones).view(c, bh, 4, bw).sum(2)
+
+
+class _OneRegionLevelDecode(torch.autograd.Function):
+    """Forward and backward in closed form, computed straight in image layout (3, bh, 4, bw, 4): the
+    broadcast of per-block endpoints against per-pixel weights does the block-to-image transpose for free,
+    the integer pipeline runs in int32 in place, and the half bits become values by reinterpretation. Only
+    the output is kept for the backward (the slope of eq. 9 is read from its exponent)."""
 
     @staticmethod
-    def forward(ctx, endpoints: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
-        """endpoints (..., 1, 2, 3), weights (..., 16) -> (..., 16, 3) texel values."""
-        e_round = quantize_endpoints(endpoints, 10, False)
-        index = quantize_weights(weights, 4)
-        # The decoder's integer pipeline (`unquantize`, `interpolate`, `finish_magnitude`) in float32, where
-        # every intermediate is an integer below 2^24 and so exact: half the memory traffic of int64.
-        ends = torch.where(e_round >= 1023.0, 65535.0, torch.where(e_round > 0, e_round * 64.0 + 32.0, 0.0))
-        weight = torch.as_tensor(WEIGHTS_4BIT, dtype=torch.float32, device=endpoints.device)[index.long()]
-        weight = weight.unsqueeze(-1)  # (..., 16, 1)
-        c = torch.floor((ends[..., 0, 0:1, :] * (64.0 - weight) + ends[..., 0, 1:2, :] * weight + 32.0) / 64.0)
-        magnitude = torch.floor(c * (31.0 / 64.0))  # exact: c * 31 < 2^24, and / 64 is exact
-        exponent = torch.clamp(torch.floor(magnitude / 1024.0) - 1.0, min=0.0)  # h(v) of eq. 9
-        scale = torch.exp2(exponent - 14.0)
-        # The surrogate's slope: d value / d c = 2^(h-14) / 1024 (eq. 9) * 31/64 (finish), eq. 7-8 for the rest.
-        ctx.save_for_backward(scale, index, e_round)
-        return scale * (magnitude / 1024.0 - exponent)
+    def forward(ctx, endpoints: torch.Tensor, weights: torch.Tensor, blocks_high: int,
+                blocks_wide: int) -> torch.Tensor:
+        bh, bw = blocks_high, blocks_wide
+        e_round = quantize_endpoints(endpoints, 10, False).view(bh, bw, 2, 3)
+        index = quantize_weights(weights, 4).view(bh, bw, 4, 4).permute(0, 2, 1, 3)  # (bh, 4, bw, 4)
+        e_int = e_round.to(torch.int32)
+        # `unquantize` of 10-bit UF16 endpoints: 0 stays 0, 1023 saturates to 0xFFFF, else e * 64 + 32.
+        ends = torch.where(e_int >= 1023, 0xFFFF, torch.where(e_int > 0, e_int * 64 + 32, 0))
+        ends = ends.permute(3, 0, 2, 1).unsqueeze(-1)  # (3, bh, 2, bw, 1)
+        first, second = ends[:, :, 0:1], ends[:, :, 1:2]  # (3, bh, 1, bw, 1)
+        table = torch.as_tensor(WEIGHTS_4BIT, dtype=torch.int32, device=endpoints.device)
+        weight = table[index.long()]  # (bh, 4, bw, 4)
+        # `interpolate`: (a (64 - w) + b w + 32) >> 6 = (64 a + 32 + (b - a) w) >> 6; then `finish_magnitude`.
+        c = torch.empty((3, bh, 4, bw, 4), dtype=torch.int32, device=endpoints.device)  # image layout
+        torch.addcmul(first * 64 + 32, second - first, weight, out=c).bitwise_right_shift_(6)
+        magnitude = c.mul_(31).bitwise_right_shift_(6)  # half bits 0..0x7BFF
+        value = magnitude.to(torch.int16).view(torch.float16).to(torch.float32).view(3, 4 * bh, 4 * bw)
+        ctx.save_for_backward(value, index, e_round)
+        return value
 
     @staticmethod
-    def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        scale, index, e_round = ctx.saved_tensors
-        d_c = grad * scale * (31.0 / 64.0 / 1024.0)  # (..., 16, 3)
-        w = (index / 15.0).unsqueeze(-1)  # the straight-through weights' forward value
+    def backward(ctx, grad: torch.Tensor):
+        value, index, e_round = ctx.saved_tensors
+        bh, bw = e_round.shape[:2]
+        # Eq. 9's slope d value / d bits is the half's spacing at the value: 2^(exponent - 10), and 2^-24
+        # for subnormals and zero. Times 31/64 (the finish) it is d value / d c; the constants are applied to
+        # the per-block sums below, not to every texel.
+        power = (value.view(torch.int32) & 0x7F800000).view(torch.float32).clamp_(min=2.0 ** -14)
+        d_c = (grad * power).view(3, bh, 4, bw, 4)
+        w = index / 15.0  # the straight-through weights' forward value, (bh, 4, bw, 4)
         # c = a + (b - a) w with a, b = e * 2^6 + 2^5 (eq. 7, continuous): straight-through to the parameters.
-        d_second = (d_c * w).sum(-2)
-        d_first = d_c.sum(-2) - d_second
-        span = (e_round[..., 0, 1, :] - e_round[..., 0, 0, :]).unsqueeze(-2)  # (b - a) / 64
-        return torch.stack([d_first, d_second], -2).unsqueeze(-3) * 64.0, (d_c * span).sum(-1) * 64.0
+        d_second = _block_sums(d_c * w)  # (3, bh, bw)
+        d_first = _block_sums(d_c) - d_second
+        scale = 64.0 * 31.0 / 64.0 / 1024.0  # d a / d e = 64, times the constants of the slope
+        d_ends = torch.stack([d_first, d_second], -1).permute(1, 2, 3, 0).reshape(bh * bw, 1, 2, 3) * scale
+        span = (e_round[..., 1, :] - e_round[..., 0, :]).permute(2, 0, 1)[:, :, None, :, None]  # (b - a) / 64
+        d_weights = (d_c * span).sum(0).permute(0, 2, 1, 3).reshape(bh * bw, 16) * scale
+        return d_ends, d_weights, None, None

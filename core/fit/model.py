@@ -149,7 +149,7 @@ class BlockFeatures(nn.Module):
     channels), 16 weights and a fixed partition, stored normalised: endpoints / (2^bits - 1) and weights in
     [0, 1], so learning rates mean the same for mode 10 and 11. Blocks are row-major over the level.
 
-    `level()` decodes with `block_decode.decode_blocks_differentiable`: bit-exact forward (the exported texture),
+    `level()` decodes with `block_decode` (`decode_level_one_region` in mode 11): bit-exact forward (the exported texture),
     straight-through rounding and the eq. 7-9 surrogate backward."""
 
     def __init__(self, specs: Sequence[FeatureTextureSpec], mode: Literal[10, 11],
@@ -178,7 +178,10 @@ class BlockFeatures(nn.Module):
     def level(self, texture: int, level: int) -> torch.Tensor:
         i = self._index(texture, level)
         w, h = self.specs[texture].level_size(level)
-        partition = self._partition(i) if self.spec.regions == 2 else None
+        if self.spec.regions == 1:  # the default presets' mode: closed-form decode straight into image layout
+            return block_decode.decode_level_one_region(self.endpoints[i] * self.top, self.weights[i], h // 4,
+                                                        w // 4)
+        partition = self._partition(i)
         texels = block_decode.decode_blocks_differentiable(self.endpoints[i] * self.top, self.weights[i],
                                                            partition, signed=False)  # (nb, 16, 3)
         return texels.view(h // 4, w // 4, 4, 4, 3).permute(4, 0, 2, 1, 3).reshape(3, h, w)

@@ -14,6 +14,7 @@ from typing import Callable, Optional
 import torch
 
 from bcf.core.errors import InputError
+from bcf.core.fit.batches import BatchSampler
 from bcf.core.fit.model import (BlockFeatures, Decoder, FeatureTextureSpec, FreeFeatures, NeuralMaterial,
                                 feature_textures, to_block_features)
 from bcf.core.fit.sampling import ReferenceMaterial
@@ -83,29 +84,21 @@ StopCallback = Callable[[], bool]
 CheckpointCallback = Callable[[int, int, NeuralMaterial], None]
 
 
-def _train_phase(model: NeuralMaterial, reference: ReferenceMaterial, phase: int, iterations: int,
-                 batch_size: int, lr_features: float, lr_mlp: float, decay: float, generator: torch.Generator,
-                 scale_generator: torch.Generator,
-                 start: float, history: list[HistoryPoint], progress: Optional[ProgressCallback],
+def _train_phase(model: NeuralMaterial, batches: BatchSampler, phase: int, iterations: int,
+                 lr_features: float, lr_mlp: float, decay: float, start: float, history: list[HistoryPoint], progress: Optional[ProgressCallback],
                  should_stop: Optional[StopCallback], checkpoint: Optional[CheckpointCallback] = None,
                  checkpoint_every: int = 0) -> None:
-    device = model.decoder.input_scale.device
     optimizer = torch.optim.Adam([{"params": model.features.parameters(), "lr": lr_features},
                                   {"params": model.decoder.parameters(), "lr": lr_mlp}])
     base_lrs = [lr_features, lr_mlp]
-    top_scale = reference.levels - 1  # s in [0, S - 1]: eq. 10 needs a level above floor(s)
     phase_start = time.perf_counter()
     last_report = last_history = phase_start
     running = None
     for iteration in range(1, iterations + 1):
         if should_stop is not None and should_stop():
             raise TrainingStopped(f"stopped in phase {phase} at iteration {iteration - 1}")
-        # s is needed on the host (it picks the mips), so it comes from a CPU generator: no device sync.
-        s = float(torch.rand((), generator=scale_generator)) * top_scale
-        uv = torch.rand((batch_size, 2), generator=generator, device=device)
-        with torch.no_grad():
-            target = reference.sample(uv, s)
-        loss = torch.mean((model(uv, s) - target) ** 2)  # eq. 5
+        batch = batches()
+        loss = torch.mean((model(batch.uv, batch.s) - batch.target) ** 2)  # eq. 5
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
@@ -145,6 +138,9 @@ def fit(material: TextureSet, options: ResolvedOptions, progress: Optional[Progr
     scale_generator = generator if device.type == "cpu" else torch.Generator().manual_seed(options.seed + 1)
     init_generator = torch.Generator().manual_seed(options.seed)
     reference = ReferenceMaterial(material.channels, options.address, device)
+    # s and the step kind are needed on the host (they pick the mips), so they come from a CPU generator.
+    batches = BatchSampler(reference, options.batch_size, options.continuous_fraction, options.mip_power,
+                           generator, scale_generator)
     specs = feature_textures(material.width, material.height, options.features)
     history: list[HistoryPoint] = []
     start = time.perf_counter()
@@ -152,9 +148,8 @@ def fit(material: TextureSet, options: ResolvedOptions, progress: Optional[Progr
     free = FreeFeatures(specs, init_generator).to(device)
     decoder = Decoder(options.hidden).to(device)
     model = NeuralMaterial(free, decoder, options.address)
-    _train_phase(model, reference, 1, options.phase1_iterations, options.batch_size, options.lr_features_phase1,
-                 options.lr_mlp_phase1, options.decay_phase1, generator, scale_generator, start, history, progress,
-                 should_stop, checkpoint, checkpoint_every)
+    _train_phase(model, batches, 1, options.phase1_iterations, options.lr_features_phase1, options.lr_mlp_phase1,
+                 options.decay_phase1, start, history, progress, should_stop, checkpoint, checkpoint_every)
     phase1_s = time.perf_counter() - start
     phase1_model = copy.deepcopy(model)
 
@@ -167,8 +162,7 @@ def fit(material: TextureSet, options: ResolvedOptions, progress: Optional[Progr
         checkpoint(2, 0, model)
 
     t0 = time.perf_counter()
-    _train_phase(model, reference, 2, options.phase2_iterations, options.batch_size, options.lr_features_phase2,
-                 options.lr_mlp_phase2, options.decay_phase2, generator, scale_generator, start, history, progress,
-                 should_stop, checkpoint, checkpoint_every)
+    _train_phase(model, batches, 2, options.phase2_iterations, options.lr_features_phase2, options.lr_mlp_phase2,
+                 options.decay_phase2, start, history, progress, should_stop, checkpoint, checkpoint_every)
     phase2_s = time.perf_counter() - t0
     return FitResult(model, phase1_model, naive_model, specs, phase1_s, transition_s, phase2_s, history)
