@@ -27,9 +27,9 @@ from bcf.core.fit.sampling import ReferenceMaterial, trilinear_levels
 
 def time_iterations(model: nm.NeuralMaterial, reference: ReferenceMaterial, options: ResolvedOptions,
                     iterations: int, lr: float) -> dict[str, float]:
-    optimizer = torch.optim.Adam(model.parameters(), lr=lr)
+    optimizer = training.adam_optimizer([{"params": list(model.parameters()), "lr": lr}])
     generator = torch.Generator().manual_seed(0)
-    batches = BatchSampler(reference, options.batch_size, options.continuous_fraction, options.mip_power,
+    batches = BatchSampler(reference, options.batch_size, options.continuous_fraction, options.centre_fraction,
                            generator, generator)
     parts: dict[str, float] = defaultdict(float)
     for _ in range(iterations):

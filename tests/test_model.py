@@ -14,8 +14,9 @@ from bcf.core.report import metrics
 from bcf.core.fit import model
 from bcf.core.report import report_json as report
 from bcf.core.options import PRESETS, CompressOptions, resolve_options
+from bcf.core.fit.batches import BatchSampler
 from bcf.core.fit.sampling import (ReferenceMaterial, material_mip_count, sample_bicubic, sample_bilinear,
-                               sample_trilinear, texel_centres, trilinear_levels)
+                                   sample_trilinear, texel_centres, trilinear_levels, wrap_pad)
 
 
 def _bilinear_reference(image: np.ndarray, u: float, v: float, wrap: bool) -> np.ndarray:
@@ -81,6 +82,81 @@ def test_reference_pyramid_and_scale_range() -> None:
     np.testing.assert_allclose(reference.mip(2).mean((1, 2)).numpy(), channels.mean((0, 1)), atol=1e-5)
     torch.testing.assert_close(reference.sample(texel_centres(32, 16), 2.0).T.reshape(8, 16, 32), reference.mip(2),
                                atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("size", [(4, 4, 1), (8, 16, 2), (5, 7, 2), (4, 4, 4)], ids=str)
+def test_wrap_pad_matches_circular_pad_values_and_gradients(size: tuple[int, int, int]) -> None:
+    h, w, pad = size
+    image = torch.randn(3, h, w, dtype=torch.float64, requires_grad=True)
+    upstream = torch.randn(1, 3, h + 2 * pad, w + 2 * pad, dtype=torch.float64)
+    ours = wrap_pad(image, pad)
+    (ours * upstream).sum().backward()
+    ours_grad, image.grad = image.grad, None
+    torch_pad = torch.nn.functional.pad(image.unsqueeze(0), (pad,) * 4, mode="circular")
+    (torch_pad * upstream).sum().backward()
+    assert torch.equal(ours, torch_pad)
+    torch.testing.assert_close(ours_grad, image.grad)
+
+
+def test_texel_batches_are_lookups_of_the_reference_at_texel_centres() -> None:
+    """A texel step's targets are F(M) at its points (bicubic interpolates at texel centres); mips no larger
+    than the batch come whole, every texel once, and every mip is drawn."""
+    channels = np.random.default_rng(5).random((64, 32, 8)).astype(np.float32)
+    reference = ReferenceMaterial(channels, "wrap")  # mips 32x64 .. 4x8
+    generator = torch.Generator().manual_seed(0)
+    sampler = BatchSampler(reference, 256, 0.0, 1.0, generator, generator)
+    seen = set()
+    for _ in range(60):
+        batch = sampler()
+        level = int(batch.s)
+        assert batch.s == level
+        seen.add(level)
+        h, w = reference.mip(level).shape[1:]
+        torch.testing.assert_close(batch.target, reference.sample(batch.uv, batch.s), atol=1e-5, rtol=0)
+        texel = torch.floor(batch.uv * torch.tensor([w, h]))
+        torch.testing.assert_close(batch.uv, (texel + 0.5) / torch.tensor([w, h]))  # texel centres
+        if w * h <= 256:
+            assert len(batch.uv) == w * h and len({tuple(t) for t in texel.tolist()}) == w * h  # dense
+        else:
+            assert len(batch.uv) == 256
+    assert seen == set(range(reference.levels))
+
+
+def test_continuous_only_batches_draw_as_the_papers_sampling() -> None:
+    """continuous_fraction 1: s uniform over [0, S - 1] then uv uniform, from the same generator, as before
+    texel steps existed (so such fits are unchanged)."""
+    channels = np.random.default_rng(6).random((32, 32, 8)).astype(np.float32)
+    reference = ReferenceMaterial(channels, "clamp")
+    sampler = BatchSampler(reference, 300, 1.0, 1.0, torch.Generator().manual_seed(3),
+                           torch.Generator().manual_seed(4))
+    scales, points = torch.Generator().manual_seed(4), torch.Generator().manual_seed(3)
+    for _ in range(3):
+        batch = sampler()
+        assert batch.s == float(torch.rand((), generator=scales)) * (reference.levels - 1)
+        assert torch.equal(batch.uv, torch.rand((300, 2), generator=points))
+        torch.testing.assert_close(batch.target, reference.sample(batch.uv, batch.s))
+
+
+def test_jittered_mip_batches_sample_inside_the_texels_of_one_mip() -> None:
+    channels = np.random.default_rng(8).random((64, 64, 8)).astype(np.float32)
+    reference = ReferenceMaterial(channels, "wrap")
+    generator = torch.Generator().manual_seed(2)
+    sampler = BatchSampler(reference, 1024, 0.0, 0.0, generator, generator)
+    for _ in range(20):
+        batch = sampler()
+        h, w = reference.mip(int(batch.s)).shape[1:]
+        assert batch.s == int(batch.s) and len(batch.uv) == min(w * h, 1024)
+        offsets = batch.uv * torch.tensor([w, h]) % 1.0
+        assert float(offsets.std()) > 0.2  # spread over the texels, not at their centres (0.5)
+        torch.testing.assert_close(batch.target, reference.sample(batch.uv, batch.s))
+
+
+def test_mixed_batches_follow_the_continuous_fraction() -> None:
+    channels = np.random.default_rng(7).random((32, 32, 8)).astype(np.float32)
+    generator = torch.Generator().manual_seed(1)
+    sampler = BatchSampler(ReferenceMaterial(channels, "wrap"), 512, 0.25, 0.0, generator, generator)
+    continuous = sum(sampler().s % 1.0 != 0.0 for _ in range(400))
+    assert 70 <= continuous <= 130  # 100 expected; an integer s from a continuous step has probability 0
 
 
 def test_feature_textures_follow_table_1() -> None:

@@ -10,7 +10,8 @@ import torch
 from bcf.core.codec.bc6h import (PARTITION_SUBSETS, WEIGHTS_3BIT, WEIGHTS_4BIT, endpoint_range, finish_magnitude,
                                  interpolate, mode_for_regions, unquantize)
 
-__all__ = ["decode_blocks_differentiable", "decode_level_one_region", "half_bits_to_value", "quantize_endpoints", "quantize_weights"]
+__all__ = ["decode_blocks_differentiable", "decode_level_one_region", "half_bits_to_value", "quantize_endpoints",
+           "quantize_weights"]
 
 
 def half_bits_to_value(v: torch.Tensor) -> torch.Tensor:

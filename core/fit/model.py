@@ -149,8 +149,8 @@ class BlockFeatures(nn.Module):
     channels), 16 weights and a fixed partition, stored normalised: endpoints / (2^bits - 1) and weights in
     [0, 1], so learning rates mean the same for mode 10 and 11. Blocks are row-major over the level.
 
-    `level()` decodes with `block_decode` (`decode_level_one_region` in mode 11): bit-exact forward (the exported texture),
-    straight-through rounding and the eq. 7-9 surrogate backward."""
+    `level()` decodes with `block_decode` (`decode_level_one_region` in mode 11): bit-exact forward (the exported
+    texture), straight-through rounding and the eq. 7-9 surrogate backward."""
 
     def __init__(self, specs: Sequence[FeatureTextureSpec], mode: Literal[10, 11],
                  fits: Sequence[partition.BlockFit], device: str | torch.device = "cpu"):
@@ -252,9 +252,9 @@ def _feature_range(free: FreeFeatures, texture: int) -> tuple[np.ndarray, np.nda
 
 
 def to_block_features(free: FreeFeatures, decoder: Decoder, mode: Literal[10, 11]) -> BlockFeatures:
-    """Phase 1 -> phase 2 (§5.1): map each feature channel's value range onto STORED_RANGE, fold the inverse map into the decoder's input scale/offset (so the MLP sees the same inputs),
-    then initialise the blocks by the partition search (`partition.fit_blocks`) on the mapped values.
-    Changes `decoder` in place."""
+    """Phase 1 -> phase 2 (§5.1): map each feature channel's value range onto STORED_RANGE, fold the inverse map
+    into the decoder's input scale/offset (so the MLP sees the same inputs), then initialise the blocks by the
+    partition search (`partition.fit_blocks`) on the mapped values. Changes `decoder` in place."""
     device = decoder.input_scale.device
     c0, c1 = STORED_RANGE
     fits = []

