@@ -22,7 +22,7 @@ T = TypeVar("T")
 FILES = Group("texture files (instead of, or overriding, MATERIAL_DIR)")
 TRAINING = Group("training")
 TRAINING_FIELDS = ("preset", "features", "address", "device", "seed", "hidden", "block_mode", "phase1_iterations",
-                   "phase2_iterations", "batch_size", "normal_convention")
+                   "phase2_iterations", "batch_size", "continuous_fraction", "centre_fraction", "normal_convention")
 
 # --------------------------------------------------------------------------------------------- progress
 

@@ -40,12 +40,13 @@ class TrainingSchedule(BaseModel):
     lr_features_phase2: float = Field(gt=0, description="paper: 1e-2")
     lr_mlp_phase2: float = Field(gt=0, description="paper: 1e-3")
     decay_phase2: float = Field(gt=0, le=1, description="paper: 0.99999")
+    # Defaults: the paper's sampling, which manifests and reports written before these fields existed used.
     continuous_fraction: float = Field(
-        ge=0, le=1, description="fraction of steps at a continuous scale s (the paper's sampling: 1); the others "
-        "sample one integer mip (bcf.core.fit.batches)")
+        1.0, ge=0, le=1, description="fraction of steps at a continuous scale s (the paper's sampling: 1); the "
+        "others sample one integer mip (bcf.core.fit.batches)")
     centre_fraction: float = Field(
-        ge=0, le=1, description="fraction of the integer-mip steps at texel centres, where the target is a lookup; "
-        "the others at random points inside the texels")
+        1.0, ge=0, le=1, description="fraction of the integer-mip steps at texel centres, where the target is a "
+        "lookup; the others at random points inside the texels")
     hidden: Literal[16, 32] = Field(description="MLP hidden width (paper: 16 or 32)")
     block_mode: Literal[10, 11] = Field(
         description="BC6H mode of the feature blocks: 10 = two regions, 6-bit endpoints, 3-bit indices "

@@ -13,7 +13,7 @@ from bcf.core.codec import bc6h
 from bcf.core.report import metrics
 from bcf.core.fit import model
 from bcf.core.report import report_json as report
-from bcf.core.options import PRESETS, CompressOptions, resolve_options
+from bcf.core.options import PRESETS, CompressOptions, ResolvedOptions, resolve_options
 from bcf.core.fit.batches import BatchSampler
 from bcf.core.fit.sampling import (ReferenceMaterial, material_mip_count, sample_bicubic, sample_bilinear,
                                    sample_trilinear, texel_centres, trilinear_levels, wrap_pad)
@@ -251,6 +251,10 @@ def test_presets_resolve_with_overrides() -> None:
     assert (paper.lr_features_phase1, paper.lr_mlp_phase1, paper.decay_phase1) == (5e-2, 1e-3, 0.9995)
     assert (paper.lr_features_phase2, paper.lr_mlp_phase2, paper.decay_phase2) == (1e-2, 1e-3, 0.99999)
     assert (paper.hidden, paper.block_mode) == (16, 10)
+    assert (paper.continuous_fraction, paper.centre_fraction) == (1.0, 1.0)  # the paper's sampling
+    # Manifests and reports written before the sampling options existed still read, as the paper's sampling.
+    earlier = resolve_options(CompressOptions()).model_dump(exclude={"continuous_fraction", "centre_fraction"})
+    assert ResolvedOptions(**earlier).continuous_fraction == ResolvedOptions(**earlier).centre_fraction == 1.0
     custom = resolve_options(CompressOptions(preset="fast", phase2_iterations=7, hidden=32))
     assert custom.phase2_iterations == 7 and custom.hidden == 32
     assert custom.phase1_iterations == PRESETS["fast"].phase1_iterations
