@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -23,6 +24,13 @@ BCF = _bcf_command()
 # One torch thread: tiny training batches run faster on one thread than on two, and two test workers with two
 # threads each on a 2-core machine slow down many times over. Results do not depend on the thread count.
 ONE_THREAD_ENV = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
+def default_sigint() -> None:
+    """Popen preexec_fn for tests that press Ctrl-C: a child inherits an ignored SIGINT from a test run that was
+    started in the background (POSIX shells ignore SIGINT in asynchronous jobs), and Python then installs no
+    KeyboardInterrupt handler. The default disposition at exec lets the command handle Ctrl-C as in a terminal."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 def run_bcf(*args: object, timeout: float = 180) -> subprocess.CompletedProcess[str]:

@@ -18,7 +18,7 @@ import pytest
 from bcf.core import load_export
 from bcf.core.material.assets import FoundMaterial
 from bcf.jobs.batch import _output_names
-from bcf_command import BCF, ONE_THREAD_ENV, run_bcf
+from bcf_command import BCF, ONE_THREAD_ENV, default_sigint, run_bcf
 from service_harness import CHAINMAIL, CHAINMAIL_ROLES, BcfEnvironment
 
 NAMES = json.loads((Path(__file__).parent / "data" / "material_names.json").read_text())["materials"]
@@ -150,7 +150,7 @@ def test_an_interrupted_batch_continues_where_it_stopped(library: Path, tmp_path
     out = tmp_path / "out"
     slow = ["--preset", "fast", "--phase1-iterations", "300", "--phase2-iterations", "300", "--batch-size", "1024"]
     process = subprocess.Popen([*BCF, "batch", str(assets), "-o", str(out), *slow, "-q"], env=ONE_THREAD_ENV,
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=default_sigint)
     deadline = time.monotonic() + 300
     finished = lambda: [p for p in out.glob("*/manifest.json") if not p.parent.name.startswith(".")]  # noqa: E731
     while not finished() and time.monotonic() < deadline:  # staging folders are hidden: wait for a result

@@ -36,7 +36,7 @@ from bcf.core.material.texture_set import TextureSet, load_material
 from bcf.core.options import CompressOptions, resolve_options
 from bcf.core.report.report_json import Report, read_report
 from bcf.core.fit.sampling import ReferenceMaterial, material_mip_count
-from bcf_command import BCF, ONE_THREAD_ENV, run_bcf
+from bcf_command import BCF, ONE_THREAD_ENV, default_sigint, run_bcf
 from reference_decoders import MesaBC6HDecoder, decode_with_mesa, decode_with_oiio
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -529,7 +529,8 @@ def test_ctrl_c_exits_130_and_writes_nothing(sample_dir: Path, tmp_path: Path) -
     output = tmp_path / "out"
     process = subprocess.Popen([*BCF, "compress", str(sample_dir), "-o", str(output), "--preset", "fast",
                                 "--phase1-iterations", "1000000", "--phase2-iterations", "10", "--batch-size", "1024"],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ONE_THREAD_ENV)
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ONE_THREAD_ENV,
+                               preexec_fn=default_sigint)
     watchdog = threading.Timer(120, process.kill)  # never hang the suite if the progress line never comes
     watchdog.start()
     try:
