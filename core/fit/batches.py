@@ -14,7 +14,8 @@ target is the reference material there. Steps come in three kinds:
 
 Mips are drawn alike, not by area as RTXNTC does: the report weighs every mip alike (mean MSE over mips), and
 each feature mip is its own parameters, trained only when its scale is drawn. By area, the coarse mips were
-starved: 2.8 dB lower after a 1,000 + 2,000-iteration fit at 2K (docs/BENCHMARKS.md). Texel centres alone raise
+starved: 2.0 dB below mips drawn alike (1.3 below the paper's sampling) after a 1,000 + 2,000-iteration fit at
+2K (docs/BENCHMARKS.md). Texel centres alone raise
 the report's PSNR at centres but not between them (the 1 spp score): the presets mix the kinds as measured there.
 """
 
@@ -53,6 +54,7 @@ class BatchSampler:
         self.generator = generator
         self.step_generator = step_generator
         self._sizes = [(m.shape[2], m.shape[1]) for m in reference.mips]
+        self._device = reference.mips[0].device
         self._texels: dict[int, torch.Tensor] = {}  # mip -> (h * w, C), rows are texels: gathers read 32 bytes
 
     def __call__(self) -> Batch:
@@ -66,15 +68,14 @@ class BatchSampler:
 
     def _continuous(self) -> Batch:
         s = float(torch.rand((), generator=self.step_generator)) * (self.reference.levels - 1)
-        device = self.reference.mips[0].device
-        uv = torch.rand((self.batch_size, 2), generator=self.generator, device=device)
+        uv = torch.rand((self.batch_size, 2), generator=self.generator, device=self._device)
         with torch.no_grad():
             return Batch(uv, s, self.reference.sample(uv, s))
 
     def _mip_step(self, centres: bool) -> Batch:
         mip = int(torch.randint(0, len(self._sizes), (), generator=self.step_generator))
         w, h = self._sizes[mip]
-        device = self.reference.mips[0].device
+        device = self._device
         if w * h <= self.batch_size:
             index = torch.arange(w * h, device=device)  # dense: every texel once
         else:
