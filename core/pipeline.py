@@ -141,11 +141,12 @@ def compress_material(material: TextureSet, options: CompressOptions | ResolvedO
         exported = load_export(staged)
         reference = ReferenceMaterial(material.channels, resolved.address)
         model_cpu = result.model.to("cpu").eval()
-        on_files = _evaluate(exported.model, reference)
-        models = {"exported": on_files.aggregate,
-                  "trained_fp32": _evaluate(model_cpu, reference).aggregate,
-                  "phase1_unconstrained": _evaluate(result.phase1_model.to("cpu").eval(), reference).aggregate}
-        baseline = report.summarise(metrics.mean_baseline(reference), _mip_sizes(reference)).aggregate
+        # One pass over the mips scores every model at texel centres.
+        scores = {name: report.summarise(mips, _mip_sizes(reference)) for name, mips in metrics.evaluate_at_centres(
+            {"exported": exported.model, "trained_fp32": model_cpu,
+             "phase1_unconstrained": result.phase1_model.to("cpu").eval()}, reference, mean_baseline=True).items()}
+        on_files, baseline = scores["exported"], scores.pop("mean").aggregate
+        models = {name: evaluation.aggregate for name, evaluation in scores.items()}
         jittered = _evaluate(exported.model, reference, JITTER_SEED)
         evaluation_s = time.perf_counter() - t0
 

@@ -14,6 +14,7 @@ from bcf.core.report import metrics
 from bcf.core.fit import model
 from bcf.core.report import report_json as report
 from bcf.core.options import PRESETS, CompressOptions, ResolvedOptions, resolve_options
+from bcf.core.export.decode import render_mip
 from bcf.core.fit.batches import BatchSampler
 from bcf.core.fit.sampling import (ReferenceMaterial, material_mip_count, sample_bicubic, sample_bilinear,
                                    sample_trilinear, texel_centres, trilinear_levels, wrap_pad)
@@ -227,6 +228,37 @@ def test_ssim_and_psnr() -> None:
     assert metrics.ssim(image[:, :4, :4], image[:, :4, :4]) == pytest.approx(1.0, abs=1e-6)  # tiny mips work
     assert metrics.psnr_from_mse(0.01) == pytest.approx(20.0)
     assert metrics.psnr_from_mse(0.0) == 100.0
+
+
+def test_scores_of_several_decoders_match_scoring_each_from_its_definition() -> None:
+    """evaluate_at_centres (reference statistics shared, group scores as means over channels) gives, for
+    every decoder and mip, the MSE, PSNR and SSIM computed straight from their definitions on each group's
+    channels; the mean baseline predicts the per-channel mean of mip 0."""
+    channels = np.random.default_rng(14).random((48, 32, 8)).astype(np.float32)
+    reference = ReferenceMaterial(channels, "wrap")
+
+    def wavy(uv: torch.Tensor, s: float) -> torch.Tensor:
+        return 0.5 + 0.4 * torch.sin(torch.arange(1, 9) * (uv[:, :1] * 7 + uv[:, 1:] * 3 + s))
+
+    def noisy(uv: torch.Tensor, s: float) -> torch.Tensor:
+        return reference.sample(uv, s) + 0.05 * torch.cos(uv[:, :1] * 91 + torch.arange(8))
+
+    scored = metrics.evaluate_at_centres({"wavy": wavy, "noisy": noisy}, reference, mean_baseline=True)
+    mean = reference.mip(0).mean(dim=(1, 2), keepdim=True)
+    for level in range(reference.levels):
+        target = reference.mip(level)
+        _, h, w = target.shape
+        tests = {"wavy": render_mip(wavy, w, h, float(level)).clamp(0, 1),
+                 "noisy": render_mip(noisy, w, h, float(level)).clamp(0, 1), "mean": mean.expand_as(target)}
+        for name, test in tests.items():
+            got = scored[name][level]
+            for group, part in metrics.GROUPS.items():
+                mse = float(torch.mean((target[part] - test[part]) ** 2))
+                assert got["mse"][group] == pytest.approx(mse, rel=1e-5)
+                assert got["psnr"][group] == pytest.approx(metrics.psnr_from_mse(mse), abs=1e-4)
+                assert got["ssim"][group] == pytest.approx(metrics.ssim(target[part], test[part]), abs=1e-6)
+    assert metrics.evaluate(noisy, reference) == scored["noisy"]
+    assert metrics.mean_baseline(reference) == scored["mean"]
 
 
 def test_summary_aggregates_mse_over_mips() -> None:
