@@ -31,7 +31,7 @@ from bcf.core.pipeline import JITTER_SEED
 from bcf.core.fit.sampling import ReferenceMaterial
 
 
-def _load(path: Path, max_size: int | None) -> tuple[TextureSet, str | None]:
+def load_material_entry(path: Path, max_size: int | None) -> tuple[TextureSet, str | None]:
     """The material at `path` and its addressing from the index (None: the preset's), downscaled to max_size."""
     address = None
     if (path.parent / INDEX_FILE).is_file():
@@ -62,7 +62,7 @@ def main() -> None:
     parser.add_argument("-o", "--output", type=Path)
     args = parser.parse_args()
 
-    texture_set, address = _load(args.material, args.max_size)
+    texture_set, address = load_material_entry(args.material, args.max_size)
     overrides = {k: v for k, v in {"phase1_iterations": args.phase1_iterations,
                                    "phase2_iterations": args.phase2_iterations, "block_mode": args.block_mode,
                                    "batch_size": args.batch_size}.items() if v is not None}
