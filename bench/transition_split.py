@@ -40,8 +40,9 @@ def _stored_levels(free: nm.FreeFeatures) -> list[list[np.ndarray]]:
     pyramids = []
     for i, spec in enumerate(free.specs):
         low, high = nm._feature_range(free, i)
-        pyramids.append([np.clip((free.level(i, l).detach().numpy().astype(np.float64).transpose(1, 2, 0) - low)
-                                 / (high - low), 0.0, 1.0) for l in range(spec.levels)])
+        levels = (free.level(i, level).detach().numpy().astype(np.float64).transpose(1, 2, 0)
+                  for level in range(spec.levels))
+        pyramids.append([np.clip((x - low) / (high - low), 0.0, 1.0) for x in levels])
     return pyramids
 
 
