@@ -142,9 +142,10 @@ def compress_material(material: TextureSet, options: CompressOptions | ResolvedO
         reference = ReferenceMaterial(material.channels, resolved.address)
         model_cpu = result.model.to("cpu").eval()
         # One pass over the mips scores every model at texel centres.
-        scores = {name: report.summarise(mips, _mip_sizes(reference)) for name, mips in metrics.evaluate_at_centres(
+        at_centres = metrics.evaluate_at_centres(
             {"exported": exported.model, "trained_fp32": model_cpu,
-             "phase1_unconstrained": result.phase1_model.to("cpu").eval()}, reference, mean_baseline=True).items()}
+             "phase1_unconstrained": result.phase1_model.to("cpu").eval()}, reference, mean_baseline=True)
+        scores = {name: report.summarise(mips, _mip_sizes(reference)) for name, mips in at_centres.items()}
         on_files, baseline = scores["exported"], scores.pop("mean").aggregate
         models = {name: evaluation.aggregate for name, evaluation in scores.items()}
         jittered = _evaluate(exported.model, reference, JITTER_SEED)

@@ -231,7 +231,7 @@ def test_ssim_and_psnr() -> None:
 
 
 def test_scores_of_several_decoders_match_scoring_each_from_its_definition() -> None:
-    """evaluate_at_centres (reference statistics shared, group scores as means over channels) gives, for
+    """evaluate_at_centres (one pass over the mips, group scores as means over channels) gives, for
     every decoder and mip, the MSE, PSNR and SSIM computed straight from their definitions on each group's
     channels; the mean baseline predicts the per-channel mean of mip 0."""
     channels = np.random.default_rng(14).random((48, 32, 8)).astype(np.float32)

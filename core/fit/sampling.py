@@ -69,14 +69,24 @@ def wrap_pad(image: torch.Tensor, pad: int) -> torch.Tensor:
     return _WrapPad.apply(image, pad)
 
 
-def _sample(image: torch.Tensor, uv: torch.Tensor, address: Address, mode: str, pad: int) -> torch.Tensor:
-    """grid_sample an image (C, h, w) at uv (N, 2) -> (N, C). Wrap addressing is a circular pad of `pad`
-    texels (grid_sample has no repeat mode); the taps of the filter never reach past it."""
-    _, h, w = image.shape
+def _addressed(image: torch.Tensor, address: Address, pad: int) -> torch.Tensor:
+    """(C, h, w) -> the (1, C, ., .) image grid_sample reads for `address`: circularly padded by `pad` texels
+    for wrap (grid_sample has no repeat mode; the filter's taps never reach past the pad), as it is for clamp."""
+    return wrap_pad(image, pad) if address == "wrap" else image.unsqueeze(0)
+
+
+def _sample_addressed(addressed: torch.Tensor, uv: torch.Tensor, width: int, height: int, address: Address,
+                      mode: str, pad: int) -> torch.Tensor:
+    """grid_sample an `_addressed` image of a width x height level at uv (N, 2) -> (N, C)."""
     if address == "wrap":
-        padded = wrap_pad(image, pad)
-        return _grid_sample(padded, _wrap_grid(uv, w, h, pad), mode, "zeros")  # zeros: unreachable
-    return _grid_sample(image.unsqueeze(0), uv * 2.0 - 1.0, mode, "border")
+        return _grid_sample(addressed, _wrap_grid(uv, width, height, pad), mode, "zeros")  # zeros: unreachable
+    return _grid_sample(addressed, uv * 2.0 - 1.0, mode, "border")
+
+
+def _sample(image: torch.Tensor, uv: torch.Tensor, address: Address, mode: str, pad: int) -> torch.Tensor:
+    """grid_sample an image (C, h, w) at uv (N, 2) -> (N, C) with `address`ing."""
+    _, h, w = image.shape
+    return _sample_addressed(_addressed(image, address, pad), uv, w, h, address, mode, pad)
 
 
 def sample_bilinear(image: torch.Tensor, uv: torch.Tensor, address: Address) -> torch.Tensor:
@@ -142,8 +152,8 @@ class ReferenceMaterial:
         # The lookup copies: wrap padding done once (padding a 2K, 8-channel mip per lookup was a third of a
         # training step), channels last so that a bicubic tap reads a texel's 8 channels from one cache line,
         # not 8 planes (the same values; 3.9x faster lookups of random points in the 2K mip, docs/BENCHMARKS.md).
-        self._lookup = [(wrap_pad(m, _BICUBIC_PAD) if address == "wrap" else m.unsqueeze(0))
-                        .contiguous(memory_format=torch.channels_last) for m in self.mips]
+        self._lookup = [_addressed(m, address, _BICUBIC_PAD).contiguous(memory_format=torch.channels_last)
+                        for m in self.mips]
 
     @property
     def levels(self) -> int:
@@ -159,10 +169,8 @@ class ReferenceMaterial:
 
     def _bicubic(self, level: int, uv: torch.Tensor) -> torch.Tensor:
         """`sample_bicubic` of mip `level`, through its lookup copy."""
-        if self.address == "clamp":
-            return _grid_sample(self._lookup[level], uv * 2.0 - 1.0, "bicubic", "border")
         _, h, w = self.mips[level].shape
-        return _grid_sample(self._lookup[level], _wrap_grid(uv, w, h, _BICUBIC_PAD), "bicubic", "zeros")
+        return _sample_addressed(self._lookup[level], uv, w, h, self.address, "bicubic", _BICUBIC_PAD)
 
     def mip(self, level: int) -> torch.Tensor:
         """The stored mip `level` as (C, h, w)."""
