@@ -42,6 +42,15 @@ def load_material_entry(path: Path, max_size: int | None) -> tuple[TextureSet, s
     return (downscale(texture_set, max_size) if max_size else texture_set), address
 
 
+def _value(text: str) -> object:
+    """An --set value as JSON where it parses (numbers, true/false), else the string itself: pydantic would take
+    "0.5" for a float but not "32" for Literal[16, 32]."""
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        return text
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("material", type=Path)
@@ -66,7 +75,7 @@ def main() -> None:
     overrides = {k: v for k, v in {"phase1_iterations": args.phase1_iterations,
                                    "phase2_iterations": args.phase2_iterations, "block_mode": args.block_mode,
                                    "batch_size": args.batch_size}.items() if v is not None}
-    overrides.update(item.split("=", 1) for item in args.set)
+    overrides.update((key, _value(text)) for key, text in (item.split("=", 1) for item in args.set))
     options = resolve_options(CompressOptions(preset=args.preset, features=args.features, device=args.device,
                                               **overrides, **({"address": address} if address else {})))
     if args.rescale_decay:
