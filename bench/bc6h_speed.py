@@ -3,8 +3,9 @@
 Usage: .venv/bin/python bench/bc6h_speed.py [IMAGE] [--runs N]
 
 Times (best of N runs, default 3) on IMAGE (default: the 2048x2048 albedo of the Poly Haven set
-wood_peeling_paint_weathered): `partition.fit_blocks` (partition search, regions=2), `partition.encode_image` in
-mode 10 and mode 11, and `bc6h.decode_blocks` of each result; PSNR (peak = max(1, image max)) per mode.
+wood_peeling_paint_weathered): `partition.fit_lines` (partition search, regions=2), `partition.encode_image` in
+mode 10, mode 11 and with every mode (auto: each block in the best), and `bc6h.decode_blocks` of each result;
+PSNR (peak = max(1, image max)) per mode.
 The image is used as stored (8-bit sRGB values in [0, 1], no linearisation), level 0 only.
 """
 
@@ -22,7 +23,7 @@ import torch
 
 from bcf.core.codec import bc6h
 from bcf.core.codec import partition
-from bcf.core.codec.textures import psnr, regions_for_mode
+from bcf.core.codec.textures import encoder_modes, psnr
 from bcf.core.material.images import read_rgb
 
 DEFAULT_IMAGE = Path("/work/shared/materials/wood_peeling_paint_weathered/wood_peeling_paint_weathered_diff_2k.jpg")
@@ -57,11 +58,11 @@ def main() -> None:
     print()
 
     rows = []
-    seconds, _ = best_of(args.runs, lambda: partition.fit_blocks(flat, regions=2, signed=False))
-    rows.append(("fit_blocks (partition search, regions=2)", "10", seconds, ""))
-    for mode in (10, 11):
-        regions = regions_for_mode(mode)
-        seconds, blocks = best_of(args.runs, lambda: partition.encode_image(image, regions=regions, signed=False))
+    seconds, _ = best_of(args.runs, lambda: partition.fit_lines(flat, regions=2, signed=False))
+    rows.append(("fit_lines (partition search, regions=2)", "", seconds, ""))
+    for mode in (10, 11, "auto"):
+        modes = encoder_modes(mode)
+        seconds, blocks = best_of(args.runs, lambda: partition.encode_image(image, modes, signed=False))
         decode_seconds, decoded = best_of(args.runs, lambda: bc6h.decode_blocks(blocks, signed=False))
         restored = bc6h.block_texels_to_image(decoded, width, height)
         quality = f"{psnr(image, restored):.2f}"

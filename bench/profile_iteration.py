@@ -78,12 +78,14 @@ def main() -> None:
     parser.add_argument("--preset", default="default")
     parser.add_argument("--features", default="1k")
     parser.add_argument("--iterations", type=int, default=20)
-    parser.add_argument("--block-mode", type=int, choices=(10, 11))
+    parser.add_argument("--block-mode", choices=("10", "11", "auto"))
     parser.add_argument("--set", action="append", default=[], metavar="OPTION=VALUE",
                         help="any other CompressOptions field, e.g. --set continuous_fraction=0.25")
     args = parser.parse_args()
     texture_set = load_material(args.material)
-    extra = {"block_mode": args.block_mode} if args.block_mode else {}
+    extra: dict[str, object] = {}
+    if args.block_mode:
+        extra["block_mode"] = args.block_mode if args.block_mode == "auto" else int(args.block_mode)
     extra.update(item.split("=", 1) for item in args.set)
     options = resolve_options(CompressOptions(preset=args.preset, features=args.features, phase1_iterations=20,
                                               phase2_iterations=1, **extra))

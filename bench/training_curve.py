@@ -99,7 +99,8 @@ def main() -> None:
         model.train()
         point = {"phase": phase, "iteration": iteration, "wall_s": round(wall, 2),
                  "psnr_all": round(summary.aggregate.psnr.all, 3), "ssim_all": round(summary.aggregate.ssim.all, 4),
-                 "psnr": summary.aggregate.psnr.model_dump()}
+                 "psnr": summary.aggregate.psnr.model_dump(),
+                 "psnr_per_mip": [round(m.psnr.all, 2) for m in summary.per_mip]}
         if phase == 2 and iteration == options.phase2_iterations:  # the report's 1 spp score, at the end
             jittered = report.summarise(metrics.evaluate(model_cpu, reference, JITTER_SEED), sizes)
             point["jittered_psnr_all"] = round(jittered.aggregate.psnr.all, 3)

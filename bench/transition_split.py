@@ -39,7 +39,7 @@ def _stored_levels(free: nm.FreeFeatures) -> list[list[np.ndarray]]:
     """Every level of every pyramid as the transition stores it: (h, w, 3) in [0, 1] after the range map."""
     pyramids = []
     for i, spec in enumerate(free.specs):
-        low, high = nm._feature_range(free, i)
+        low, high = nm._feature_range(free, i, shared=False)
         levels = (free.level(i, level).detach().numpy().astype(np.float64).transpose(1, 2, 0)
                   for level in range(spec.levels))
         pyramids.append([np.clip((x - low) / (high - low), 0.0, 1.0) for x in levels])
@@ -51,9 +51,8 @@ def _line_points(stored: np.ndarray, index_bits: int | None) -> np.ndarray:
     (mode 11's single region), positions optionally rounded to 2^index_bits - 1 steps; endpoints stay real."""
     h, w, _ = stored.shape
     texels = bc6h.image_to_block_texels(stored).reshape(-1, 16, 3)
-    fit = partition.fit_blocks(texels, 1, signed=False)
-    # The segment ends in half bits: unquantize + finish of the continuous 10-bit endpoints (eq. 7).
-    ends = 31.0 / 64.0 * (fit.endpoints[:, 0] * 65536.0 + 32768.0) / 1024.0  # (n, 2, 3)
+    fit = partition.fit_lines(texels, 1, signed=False)
+    ends = fit.ends[:, 0]  # (n, 2, 3) segment ends in half bits
     weights = fit.weights
     if index_bits is not None:
         top = (1 << index_bits) - 1

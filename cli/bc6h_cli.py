@@ -43,7 +43,7 @@ def _read_texture(path: Path) -> "BC6HTexture":
     return read_texture(path)
 
 
-def encode(image: Path, /, *, output: Output, mode: Literal[10, 11] = 10, signed: bool = False,
+def encode(image: Path, /, *, output: Output, mode: Literal[10, 11, "auto"] = 10, signed: bool = False,
            levels: Annotated[Optional[PositiveInt], Parameter(group=EXCLUSIVE)] = None,
            no_mips: Annotated[bool, Parameter(group=EXCLUSIVE)] = False, verify: bool = False) -> int:
     """Compress an image (EXR, PNG, JPEG, ...) to a mipmapped BC6H texture (.dds or .ktx2).
@@ -52,14 +52,14 @@ def encode(image: Path, /, *, output: Output, mode: Literal[10, 11] = 10, signed
         image: input image; channels as stored, no colour conversion
         output: output texture: .dds or .ktx2
         mode: BC6H mode: 10 = two regions, 6-bit endpoints, 3-bit indices; 11 = one region, 10-bit endpoints,
-            4-bit indices
+            4-bit indices; auto = each block in whichever of the 14 modes fits it best
         signed: BC6H_SF16 (keeps negative values); default BC6H_UF16
         levels: number of mip levels (default: all)
         no_mips: level 0 only
         verify: read the file back, decode every level and print PSNR and max error per level
     """
-    from bcf.core import (atomic_path, encode_mips, format_name, full_mip_count, mip_chain, read_rgb, to_bc6h_range,
-                          write_dds, write_ktx2)
+    from bcf.core import (atomic_path, encode_mips, encoder_modes, format_name, full_mip_count, mip_chain, read_rgb,
+                          to_bc6h_range, write_dds, write_ktx2)
 
     container = CONTAINER_WRITERS[check_output_file(output, tuple(CONTAINER_WRITERS), "texture")]
     source = read_rgb(image)
@@ -80,7 +80,7 @@ def encode(image: Path, /, *, output: Output, mode: Literal[10, 11] = 10, signed
         h, w = mips[level].shape[:2]
         say(f"  level {level}: {size(w, h):>11}  {blocks.shape[0] * blocks.shape[1]:>7} blocks  {seconds:6.2f} s")
 
-    texture = encode_mips(mips, mode, signed, on_level=progress)
+    texture = encode_mips(mips, encoder_modes(mode), signed, on_level=progress)
     with atomic_path(output) as temporary:
         (write_dds if container == "DDS" else write_ktx2)(temporary, texture)
     data = sum(level.nbytes for level in texture.levels)

@@ -21,8 +21,9 @@ T = TypeVar("T")
 
 FILES = Group("texture files (instead of, or overriding, MATERIAL_DIR)")
 TRAINING = Group("training")
-TRAINING_FIELDS = ("preset", "features", "address", "device", "seed", "hidden", "block_mode", "phase1_iterations",
-                   "phase2_iterations", "batch_size", "continuous_fraction", "centre_fraction", "normal_convention")
+TRAINING_FIELDS = ("preset", "features", "address", "device", "seed", "hidden", "block_mode", "init",
+                   "phase1_iterations", "phase2_iterations", "batch_size", "continuous_fraction", "centre_fraction",
+                   "normal_convention")
 
 # --------------------------------------------------------------------------------------------- progress
 
@@ -113,8 +114,8 @@ def compress(material_dir: Optional[Path] = None, /, *, output: Output,
         say(line)
     resolved = resolve_options(job.compress_options())
     say(f"training: preset {resolved.preset}, features {resolved.features}, BC6H mode {resolved.block_mode}, "
-        f"MLP 12-{resolved.hidden}-8, {resolved.phase1_iterations} + {resolved.phase2_iterations} iterations "
-        f"of {resolved.batch_size} samples on {resolved.device}")
+        f"{resolved.init} start, MLP 12-{resolved.hidden}-8, {resolved.phase1_iterations} + "
+        f"{resolved.phase2_iterations} iterations of {resolved.batch_size} samples on {resolved.device}")
     result = _with_progress(quiet, f"nothing written to {output}", lambda display: compress_material(
         texture_set, resolved, output, progress=display, overwrite=force, baselines=job.baselines,
         note=None if quiet else say))
@@ -158,7 +159,8 @@ def info(folder: Path, /) -> int:
              f"material:  {m.material.name}, {m.width}x{m.height}, {m.mips} mips, {m.address} addressing, "
              f"normal {m.material.normal_convention}",
              f"training:  preset {m.options.preset}, features {m.options.features}, BC6H mode {m.options.block_mode}, "
-             f"{m.options.phase1_iterations} + {m.options.phase2_iterations} iterations, seed {m.options.seed}",
+             f"{m.options.init} start, {m.options.phase1_iterations} + {m.options.phase2_iterations} iterations, "
+             f"seed {m.options.seed}",
              "features:"]
     for t in m.feature_textures:
         lines.append(f"  {t.file}: {t.format} {t.width}x{t.height}, {t.mips} mips, LOD bias {t.lod_bias:+g}, "

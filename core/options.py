@@ -12,14 +12,17 @@ from typing import Literal, Optional, Sequence
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-__all__ = ["BASELINES", "FEATURE_SCALES", "PRESETS", "Address", "BaselineSpec", "CompressOptions", "Device",
-           "FeatureSize", "JobOptions", "Preset", "ResolvedOptions", "TrainingSchedule", "baseline_names",
-           "parse_baselines", "resolve_options"]
+__all__ = ["BASELINES", "FEATURE_SCALES", "PRESETS", "Address", "BaselineSpec", "BlockMode", "CompressOptions",
+           "Device", "FeatureSize", "Init", "JobOptions", "Preset", "ResolvedOptions", "Schedule", "TrainingSchedule",
+           "baseline_names", "parse_baselines", "resolve_options"]
 
 Preset = Literal["fast", "default", "paper"]
 Address = Literal["wrap", "clamp"]
 Device = Literal["cpu", "cuda"]
 FeatureSize = Literal["0.5k", "1k", "2k"]
+BlockMode = Literal[10, 11, "auto"]
+Init = Literal["random", "pca"]
+Schedule = Literal["exponential", "cosine"]
 Codec = Literal["bc1_bc5", "astc", "naive_bc6"]  # baseline codecs
 
 # T0's width as a fraction of the material's width; named after the paper's Table 1 for a 2K material.
@@ -27,7 +30,8 @@ FEATURE_SCALES: dict[str, float] = {"0.5k": 0.25, "1k": 0.5, "2k": 1.0}
 
 
 class TrainingSchedule(BaseModel):
-    """Everything a preset fixes. Learning rates decay exponentially per iteration: lr_t = lr * decay^t."""
+    """Everything a preset fixes. Learning rates decay over each phase as `schedule` says: exponentially per
+    iteration (lr_t = lr * decay^t) or along a cosine to 0."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
@@ -40,6 +44,14 @@ class TrainingSchedule(BaseModel):
     lr_features_phase2: float = Field(gt=0, description="paper: 1e-2")
     lr_mlp_phase2: float = Field(gt=0, description="paper: 1e-3")
     decay_phase2: float = Field(gt=0, le=1, description="paper: 0.99999")
+    # Defaults: the exponential schedule and None, as manifests and reports written before these fields existed
+    # were trained.
+    schedule: Schedule = Field(
+        "exponential", description="learning rates over each phase: exponential (lr * decay^t, the paper's) or "
+        "cosine (from lr down to 0 at the phase's last iteration; the decays are then unused)")
+    lr_endpoints_phase2: Optional[float] = Field(
+        None, gt=0, description="phase-2 rate of the blocks' endpoints (normalised by their largest value); None: "
+        "lr_features_phase2, which is always the rate of the blocks' weights (the paper's one feature rate)")
     # Defaults: the paper's sampling, which manifests and reports written before these fields existed used.
     continuous_fraction: float = Field(
         1.0, ge=0, le=1, description="fraction of steps at a continuous scale s (the paper's sampling: 1); the "
@@ -48,9 +60,14 @@ class TrainingSchedule(BaseModel):
         1.0, ge=0, le=1, description="fraction of the integer-mip steps at texel centres, where the target is a "
         "lookup; the others at random points inside the texels")
     hidden: Literal[16, 32] = Field(description="MLP hidden width (paper: 16 or 32)")
-    block_mode: Literal[10, 11] = Field(
+    block_mode: BlockMode = Field(
         description="BC6H mode of the feature blocks: 10 = two regions, 6-bit endpoints, 3-bit indices "
-                    "(the paper's); 11 = one region, 10-bit endpoints, 4-bit indices")
+                    "(the paper's); 11 = one region, 10-bit endpoints, 4-bit indices; auto = each block in "
+                    "whichever of the 14 modes fits it best at the transition")
+    # Default: random, as manifests and reports written before this field existed were trained.
+    init: Init = Field("random", description="start of the free features and the MLP: random (the paper's), or "
+                       "pca: the material's principal components, box-filtered into the pyramids, with the MLP "
+                       "set to the inverse projection (bcf.core.fit.pca)")
 
 
 def _decay(final_ratio: float, iterations: int) -> float:
@@ -59,28 +76,25 @@ def _decay(final_ratio: float, iterations: int) -> float:
 
 
 # The paper's decays end phase 1 at 0.9995^5000 = 8.2 % and phase 2 at 0.99999^200000 = 13.5 % of the
-# starting rate; the shorter presets keep those end points so their schedules have the same shape.
+# starting rate. `fast` and `default` start from the material's principal components and fit each block's
+# best BC6H mode, which already beats the former two-phase fit before any training (docs/BENCHMARKS.md, issue 15);
+# their phase 2 is a short polish with gentle rates that fall to 0 along a cosine, its samples a quarter at a
+# continuous scale and, of the mip steps, half at texel centres. Phase 1 is skipped (its rates, for users who
+# ask for iterations, are as gentle).
+_POLISH = dict(phase1_iterations=0, lr_features_phase1=2e-3, lr_mlp_phase1=1e-3, decay_phase1=1.0,
+               lr_features_phase2=5e-3, lr_endpoints_phase2=5e-4, lr_mlp_phase2=1e-3, decay_phase2=1.0,
+               schedule="cosine", continuous_fraction=0.25, centre_fraction=0.5, hidden=16, block_mode="auto",
+               init="pca")
 PRESETS: dict[str, TrainingSchedule] = {
     "paper": TrainingSchedule(
         phase1_iterations=5000, phase2_iterations=200_000, batch_size=512 * 512,
         lr_features_phase1=5e-2, lr_mlp_phase1=1e-3, decay_phase1=0.9995,
         lr_features_phase2=1e-2, lr_mlp_phase2=1e-3, decay_phase2=0.99999,
         continuous_fraction=1.0, centre_fraction=1.0, hidden=16, block_mode=10),
-    # default: half the steps at one mip, jittered inside its texels (docs/BENCHMARKS.md, issue 14), and MLP
-    # learning rates 3x the paper's (issue 15): on the 2K wood material 37.39 dB (1 spp 38.95) after 2,000 +
-    # 6,000 iterations, where the paper's MLP rates gave 37.14 (38.68); +0.30 dB on the 4-material 512² subset.
-    "default": TrainingSchedule(
-        phase1_iterations=2000, phase2_iterations=6000, batch_size=1 << 16,
-        lr_features_phase1=5e-2, lr_mlp_phase1=3e-3, decay_phase1=_decay(0.082, 2000),
-        lr_features_phase2=1e-2, lr_mlp_phase2=3e-3, decay_phase2=_decay(0.135, 6000),
-        continuous_fraction=0.5, centre_fraction=0.0, hidden=16, block_mode=11),
-    # fast: MLP learning rates 5x / 2x the paper's, measured on the bundled 256x256 sample (docs/BENCHMARKS.md):
-    # 32.73 dB vs 31.04 dB with the paper's rates after 300 + 300 iterations.
-    "fast": TrainingSchedule(
-        phase1_iterations=300, phase2_iterations=300, batch_size=1 << 14,
-        lr_features_phase1=5e-2, lr_mlp_phase1=5e-3, decay_phase1=_decay(0.082, 300),
-        lr_features_phase2=1e-2, lr_mlp_phase2=2e-3, decay_phase2=_decay(0.135, 300),
-        continuous_fraction=0.5, centre_fraction=0.0, hidden=16, block_mode=11),
+    # default: measured on the 2K wood material and the 4-material 512² subset (docs/BENCHMARKS.md, issue 15).
+    "default": TrainingSchedule(phase2_iterations=2000, batch_size=1 << 16, **_POLISH),
+    # fast: the same at a quarter of the batch and 300 iterations (tests, the demo, previews).
+    "fast": TrainingSchedule(phase2_iterations=300, batch_size=1 << 14, **_POLISH),
 }
 
 
@@ -106,13 +120,19 @@ class CompressOptions(BaseModel):
     lr_features_phase2: Optional[float] = Field(None, gt=0)
     lr_mlp_phase2: Optional[float] = Field(None, gt=0)
     decay_phase2: Optional[float] = Field(None, gt=0, le=1)
+    lr_endpoints_phase2: Optional[float] = Field(None, gt=0, description="phase-2 rate of the blocks' endpoints "
+                                                 "(default: the preset's)")
+    schedule: Optional[Schedule] = Field(None, description="learning-rate schedule: exponential or cosine "
+                                         "(default: the preset's)")
     continuous_fraction: Optional[float] = Field(None, ge=0, le=1, description="fraction of steps at a continuous "
                                                  "scale; the others at one mip (default: the preset's)")
     centre_fraction: Optional[float] = Field(None, ge=0, le=1, description="fraction of mip steps at texel "
                                              "centres (default: the preset's)")
     hidden: Optional[Literal[16, 32]] = Field(None, description="MLP hidden width (default: the preset's)")
-    block_mode: Optional[Literal[10, 11]] = Field(None, description="BC6H mode of the feature blocks (default: "
-                                                  "the preset's)")
+    block_mode: Optional[BlockMode] = Field(None, description="BC6H mode of the feature blocks: 10, 11 or auto "
+                                            "(default: the preset's)")
+    init: Optional[Init] = Field(None, description="start of the features and the MLP: random or pca (default: the "
+                                 "preset's)")
 
 
 class JobOptions(CompressOptions):

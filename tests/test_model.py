@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from bcf.core.codec import bc6h
+from bcf.core.fit import pca, training
 from bcf.core.report import metrics
 from bcf.core.fit import model
 from bcf.core.report import report_json as report
@@ -211,7 +212,7 @@ def test_transition_keeps_the_mlp_inputs() -> None:
 def test_block_features_export_the_blocks_they_decode() -> None:
     specs = model.feature_textures(64, 64, "1k")
     free = model.FreeFeatures(specs, torch.Generator().manual_seed(3))
-    for mode in (10, 11):
+    for mode in (10, 11, "auto"):
         blocks = model.to_block_features(free, model.Decoder(16), mode)
         for texture, spec in enumerate(specs):
             for level in range(spec.levels):
@@ -219,6 +220,49 @@ def test_block_features_export_the_blocks_they_decode() -> None:
                 decoded = bc6h.decode_image(blocks.blocks(texture, level), w, h, signed=False)
                 trained = blocks.level(texture, level).detach().numpy().transpose(1, 2, 0)
                 np.testing.assert_array_equal(decoded.astype(np.float32), trained)
+
+
+def test_auto_blocks_use_several_modes_and_fit_better() -> None:
+    """With block_mode auto each block takes its best mode: on smooth features several modes are used, and the
+    decoded features are closer to the free ones than with mode 11 alone."""
+    specs = model.feature_textures(64, 64, "2k")
+    free = model.FreeFeatures(specs, torch.Generator().manual_seed(4))
+    with torch.no_grad():
+        for p in free.texels:
+            h, w = p.shape[1:]
+            yy, xx = torch.meshgrid(torch.linspace(0, 1, h), torch.linspace(0, 1, w), indexing="ij")
+            p.copy_(torch.stack([torch.sin(9 * xx) * yy, (xx > 0.5).float() + 0.2 * yy, xx * yy]) + 0.05 * p)
+    errors = {}
+    for mode in (11, "auto"):
+        decoder = model.Decoder(16)
+        blocks = model.to_block_features(free, decoder, mode)
+        stored = model.NeuralMaterial(blocks, decoder, "wrap")
+        before = model.NeuralMaterial(free, model.Decoder(16), "wrap")
+        uv = torch.rand(2000, 2, generator=torch.Generator().manual_seed(5))
+        mapped = stored.sample_features(uv, 0.0) * decoder.input_scale + decoder.input_offset
+        errors[mode] = float(((mapped - before.sample_features(uv, 0.0)) ** 2).mean().detach())
+        if mode == "auto":
+            used = np.unique(np.concatenate([blocks.block_modes(0, level).ravel() for level in range(specs[0].levels)]))
+            assert len(used) >= 3, used
+    assert errors["auto"] < 0.7 * errors[11], errors
+
+
+def test_pca_start_reproduces_the_coarser_mips_exactly() -> None:
+    """Before any training, the principal-component start reproduces every material mip at least as coarse as
+    the pyramids holding its components (mip 3 and up with 1k features: T2 holds components 6-7 at W/8), at
+    texel centres, to float rounding; and it is far better than the material's mean at mip 0."""
+    coarse = torch.rand(1, 8, 16, 16, generator=torch.Generator().manual_seed(6))
+    smooth = torch.nn.functional.interpolate(coarse, size=(64, 64), mode="bilinear", align_corners=False)
+    channels = smooth[0].permute(1, 2, 0).numpy().copy()
+    channels[..., 3:5] = channels[..., :2] * 0.5 + 0.2  # correlated channels, as in real materials
+    reference = ReferenceMaterial(channels, "wrap")
+    specs = model.feature_textures(64, 64, "1k")
+    torch.manual_seed(0)
+    free, decoder = pca.pca_start(reference, specs, 16, torch.Generator().manual_seed(0))
+    neural = model.NeuralMaterial(free, decoder, "wrap").eval()
+    scores = metrics.evaluate(neural, reference)
+    assert all(mip["psnr"]["all"] > 90.0 for mip in scores[3:]), [mip["psnr"]["all"] for mip in scores]
+    assert scores[0]["psnr"]["all"] > metrics.mean_baseline(reference)[0]["psnr"]["all"] + 3.0
 
 
 def test_ssim_and_psnr() -> None:
@@ -290,8 +334,19 @@ def test_presets_resolve_with_overrides() -> None:
     custom = resolve_options(CompressOptions(preset="fast", phase2_iterations=7, hidden=32))
     assert custom.phase2_iterations == 7 and custom.hidden == 32
     assert custom.phase1_iterations == PRESETS["fast"].phase1_iterations
-    for preset in PRESETS.values():  # every schedule ends near the paper's final learning-rate ratios
-        assert preset.decay_phase1 ** preset.phase1_iterations == pytest.approx(0.082, rel=0.1)
-        assert preset.decay_phase2 ** preset.phase2_iterations == pytest.approx(0.135, rel=0.1)
+    for preset in PRESETS.values():  # exponential schedules end near the paper's final learning-rate ratios
+        if preset.schedule == "exponential":
+            assert preset.decay_phase1 ** preset.phase1_iterations == pytest.approx(0.082, rel=0.1)
+            assert preset.decay_phase2 ** preset.phase2_iterations == pytest.approx(0.135, rel=0.1)
+        else:  # cosine ones at 0
+            assert training.learning_rate_factor("cosine", 1.0, 0, preset.phase2_iterations) == 1.0
+            assert training.learning_rate_factor("cosine", 1.0, preset.phase2_iterations,
+                                                 preset.phase2_iterations) == pytest.approx(0.0, abs=1e-12)
+    assert (PRESETS["default"].init, PRESETS["default"].block_mode) == ("pca", "auto")
+    # Manifests written before the start, schedule and endpoint rate existed read as the paper's fit.
+    older = resolve_options(CompressOptions(preset="paper")).model_dump(exclude={"init", "schedule",
+                                                                                 "lr_endpoints_phase2"})
+    assert (ResolvedOptions(**older).init, ResolvedOptions(**older).schedule) == ("random", "exponential")
+    assert ResolvedOptions(**older).lr_endpoints_phase2 is None
     with pytest.raises(ValueError):
         CompressOptions(preset="fast", unknown=1)

@@ -1,5 +1,5 @@
-"""BC6H block codec: bit-exact decode of all 14 modes, encode of modes 10 and 11, partition search,
-the numeric half of that (paper eq. 9's inverse).
+"""BC6H block codec: bit-exact decode and encode of all 14 modes, and the numeric half of the format
+(paper eq. 9's inverse).
 
 Everything is vectorised over blocks; the only Python loops run over the 14 modes, 32 partitions or
 16 pixels of the format, never over blocks. The codec knows nothing about files or training.
@@ -316,7 +316,7 @@ def _decode_mode(bits: np.ndarray, spec: ModeSpec, signed: bool) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------------------
-# Encoder (modes 10 and 11: explicit endpoints, what the model trains)
+# Encoder (every mode: bcf's trained blocks use any of them)
 
 
 def _pack(spec: ModeSpec, fields: np.ndarray, index: np.ndarray, partition: np.ndarray | None) -> np.ndarray:
@@ -379,46 +379,79 @@ def _check_int_range(name: str, values: np.ndarray, low: int, high: int) -> np.n
     return values.astype(np.int64)
 
 
-def encode_mode10(endpoints: np.ndarray, index: np.ndarray, partition: np.ndarray, signed: bool) -> np.ndarray:
-    """Encode two-region mode-10 blocks.
+def delta_window(spec: ModeSpec) -> tuple[np.ndarray, np.ndarray]:
+    """Per channel (3,) lowest and highest difference `endpoint - endpoint 0` that a transformed mode's stored
+    deltas can hold (signed, `spec.delta_bits` wide). Non-transformed modes store every endpoint in full: the
+    window is the whole endpoint range."""
+    if not spec.transformed:
+        width = np.int64(1) << spec.endpoint_bits
+        return np.full(3, -width, dtype=np.int64), np.full(3, width, dtype=np.int64)
+    half = np.int64(1) << (np.array(spec.delta_bits, dtype=np.int64) - 1)
+    return -half, half - 1
 
-    endpoints: (n, 2, 2, 3) ints, [block, subset, endpoint, channel], 6-bit: 0..63 (UF16) or -32..31 (SF16).
-    index: (n, 16) ints 0..7 per pixel (row-major); partition: (n,) ints 0..31. Subset 1 holds the pixels
-    whose bit is set in PARTITION_MASKS[partition]. Returns (n, 16) uint8 blocks that decode to exactly
-    these parameters (endpoints swapped and indices inverted where the anchor rule needs it).
+
+def encode_blocks(mode: int, endpoints: np.ndarray, index: np.ndarray, partition: np.ndarray | None,
+                  signed: bool) -> np.ndarray:
+    """Encode blocks of one BC6H mode (1..14).
+
+    endpoints: (n, R, 2, 3) ints, [block, subset, endpoint, channel] (R = the mode's regions), the endpoints the
+        decoder is to reconstruct, at the mode's endpoint precision: 0 .. 2^b - 1 (UF16) or -2^(b-1) ..
+        2^(b-1) - 1 (SF16). Transformed modes (1-9, 12-14) store endpoint 0 in full and the others as deltas
+        from it, so every other endpoint must lie within `delta_window(spec)` of endpoint 0 as stored, i.e.
+        after the anchor rule below has swapped subset 0's endpoints where it had to.
+    index: (n, 16) ints 0 .. 2^q - 1 per pixel (row-major); partition: (n,) ints 0..31 for two-region modes,
+        None for one-region modes. Subset 1 holds the pixels whose bit is set in PARTITION_MASKS[partition].
+    Returns (n, 16) uint8 blocks that decode to exactly these parameters (a subset's endpoints are swapped and
+    its indices inverted where the anchor's index has its top bit set, as the format requires).
     """
-    low, high = endpoint_range(6, signed)
+    spec = mode_spec(mode)
+    low, high = endpoint_range(spec.endpoint_bits, signed)
     endpoints = _check_int_range("endpoints", endpoints, low, high)
-    index = _check_int_range("index", index, 0, 7)
-    partition = _check_int_range("partition", partition, 0, 31)
+    index = _check_int_range("index", index, 0, (1 << spec.index_bits) - 1)
     n = len(index)
-    if endpoints.shape != (n, 2, 2, 3) or index.shape != (n, 16) or partition.shape != (n,):
-        raise ValueError("expected endpoints (n, 2, 2, 3), index (n, 16), partition (n,); got "
-                         f"{endpoints.shape}, {index.shape}, {partition.shape}")
-    anchors = np.stack([np.zeros(n, dtype=np.int64), SUBSET1_ANCHORS[partition]], axis=1)
-    endpoints, index = _apply_anchor_rule(endpoints, index, PARTITION_SUBSETS[partition], anchors, 3)
-    fields = endpoints.reshape(n, 12) & 0x3F  # two's complement for SF16
-    return _pack(MODE_10, fields, index, partition)
+    regions = spec.regions
+    if endpoints.shape != (n, regions, 2, 3) or index.shape != (n, 16):
+        raise ValueError(f"mode {mode}: expected endpoints ({n}, {regions}, 2, 3) and index ({n}, 16); got "
+                         f"{endpoints.shape}, {index.shape}")
+    if regions == 2:
+        if partition is None:
+            raise ValueError(f"mode {mode} has two regions: it needs a partition")
+        partition = _check_int_range("partition", partition, 0, 31)
+        if partition.shape != (n,):
+            raise ValueError(f"expected partition ({n},), got {partition.shape}")
+        subset = PARTITION_SUBSETS[partition]
+        anchors = np.stack([np.zeros(n, dtype=np.int64), SUBSET1_ANCHORS[partition]], axis=1)
+    else:
+        partition = None
+        subset = np.zeros((n, 16), dtype=np.int64)
+        anchors = np.zeros((n, 1), dtype=np.int64)
+    endpoints, index = _apply_anchor_rule(endpoints, index, subset, anchors, spec.index_bits)
+    flat = endpoints.reshape(n, 2 * regions, 3)
+    fields = np.zeros((n, 4, 3), dtype=np.int64)
+    fields[:, 0] = flat[:, 0] & ((1 << spec.endpoint_bits) - 1)  # two's complement for SF16
+    if spec.transformed:
+        deltas = flat[:, 1:] - flat[:, :1]
+        lowest, highest = delta_window(spec)
+        outside = (deltas < lowest) | (deltas > highest)
+        if outside.any():
+            raise ValueError(f"mode {mode}: {int(outside.any(axis=(1, 2)).sum())} blocks have endpoints outside the "
+                             f"delta window [{lowest.tolist()}, {highest.tolist()}] of endpoint 0")
+        fields[:, 1:2 * regions] = deltas & ((np.int64(1) << np.array(spec.delta_bits, dtype=np.int64)) - 1)
+    else:
+        fields[:, 1:2 * regions] = flat[:, 1:] & ((1 << spec.endpoint_bits) - 1)
+    return _pack(spec, fields.reshape(n, 12), index, partition)
+
+
+def encode_mode10(endpoints: np.ndarray, index: np.ndarray, partition: np.ndarray, signed: bool) -> np.ndarray:
+    """Encode two-region mode-10 blocks: `encode_blocks(10, ...)`, 6-bit endpoints (n, 2, 2, 3) stored in full,
+    3-bit indices (n, 16), partitions (n,)."""
+    return encode_blocks(10, endpoints, index, partition, signed)
 
 
 def encode_mode11(endpoints: np.ndarray, index: np.ndarray, signed: bool) -> np.ndarray:
-    """Encode one-region mode-11 blocks.
-
-    endpoints: (n, 2, 3) ints, 10-bit: 0..1023 (UF16) or -512..511 (SF16); index: (n, 16) ints 0..15.
-    Returns (n, 16) uint8 blocks that decode to exactly these parameters.
-    """
-    low, high = endpoint_range(10, signed)
-    endpoints = _check_int_range("endpoints", endpoints, low, high)
-    index = _check_int_range("index", index, 0, 15)
-    n = len(index)
-    if endpoints.shape != (n, 2, 3) or index.shape != (n, 16):
-        raise ValueError(f"expected endpoints (n, 2, 3), index (n, 16); got {endpoints.shape}, {index.shape}")
-    anchors = np.zeros((n, 1), dtype=np.int64)
-    subset = np.zeros((n, 16), dtype=np.int64)
-    endpoints, index = _apply_anchor_rule(endpoints[:, None], index, subset, anchors, 4)
-    fields = np.zeros((n, 12), dtype=np.int64)
-    fields[:, :6] = endpoints.reshape(n, 6) & 0x3FF
-    return _pack(MODE_11, fields, index, None)
+    """Encode one-region mode-11 blocks: `encode_blocks(11, ...)` with 10-bit endpoints (n, 2, 3) stored in
+    full and 4-bit indices (n, 16)."""
+    return encode_blocks(11, np.asarray(endpoints)[:, None], index, None, signed)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -27,15 +27,15 @@ __all__ = [
     "encode_mips",
     "format_name",
     "mode_histogram",
+    "encoder_modes",
     "psnr",
-    "regions_for_mode",
     "to_bc6h_range",
     "verify_texture",
 ]
 
 StrPath = Union[str, PathLike]
 HALF_MAX = 65504.0  # largest finite half float: BC6H cannot store anything larger
-ENCODABLE_MODES = (10, 11)  # the explicit-endpoint modes `partition.encode_image` writes
+ALL_MODES = tuple(spec.number for spec in bc6h.MODES)
 
 
 # ------------------------------------------------------------------------------------------ input range
@@ -70,25 +70,26 @@ def to_bc6h_range(image: np.ndarray, signed: bool) -> tuple[np.ndarray, list[str
 # --------------------------------------------------------------------------------------------- encoding
 
 
-def regions_for_mode(mode: int) -> int:
-    """`partition.encode_image`'s regions argument for BC6H mode 10 (two regions) or 11 (one region)."""
-    if mode not in ENCODABLE_MODES:
-        raise ValueError(f"only BC6H modes 10 and 11 can be encoded, got {mode}")
-    return 2 if mode == 10 else 1
+def encoder_modes(mode: int | str) -> tuple[int, ...]:
+    """The candidate modes of the encoder for a user's choice: one mode number (1..14), or "auto" for every
+    mode, each block taking the best."""
+    if mode == "auto":
+        return ALL_MODES
+    bc6h.mode_spec(int(mode))  # raises ValueError for anything but 1..14
+    return (int(mode),)
 
 
-def encode_mips(mips: Sequence[np.ndarray], mode: int, signed: bool,
+def encode_mips(mips: Sequence[np.ndarray], modes: Sequence[int], signed: bool,
                 on_level: Optional[Callable[[int, np.ndarray, float], None]] = None) -> BC6HTexture:
     """Encode a mip chain (level 0 first, each (h_i, w_i, 3), sizes as `containers.mip_size`) to a texture.
 
-    Every level uses `mode` (10 or 11). `on_level(level, blocks, seconds)` is called after each level so a
-    caller can report progress; blocks has shape (ceil(h_i / 4), ceil(w_i / 4), 16).
+    Every block takes the best of `modes` (`partition.fit_blocks`). `on_level(level, blocks, seconds)` is
+    called after each level so a caller can report progress; blocks has shape (ceil(h_i / 4), ceil(w_i / 4), 16).
     """
-    regions = regions_for_mode(mode)
     levels = []
     for i, level in enumerate(mips):
         start = time.perf_counter()
-        blocks = partition.encode_image(level, regions=regions, signed=signed)
+        blocks = partition.encode_image(level, modes, signed=signed)
         if on_level is not None:
             on_level(i, blocks, time.perf_counter() - start)
         levels.append(blocks)

@@ -22,9 +22,10 @@ import torch
 from torch import nn
 
 from bcf.core.codec import bc6h, partition
+from bcf.core.codec.textures import encoder_modes
 from bcf.core.fit import block_decode
 from bcf.core.fit.sampling import sample_trilinear
-from bcf.core.options import FEATURE_SCALES, Address
+from bcf.core.options import FEATURE_SCALES, Address, BlockMode
 
 __all__ = ["FEATURE_CHANNELS", "FEATURE_TEXTURES", "OUTPUT_CHANNELS", "BlockFeatures", "Decoder",
            "FeatureTextureSpec", "FreeFeatures", "NeuralMaterial", "StaticFeatures", "feature_textures",
@@ -34,10 +35,15 @@ FEATURE_TEXTURES = 4
 FEATURE_CHANNELS = 3
 OUTPUT_CHANNELS = 8
 
-# The transition to block features maps each feature channel's 0.05 %-99.95 % quantile range onto the half
-# values [0, 1]. (Any range works alike for the log-spaced UF16 endpoints; [0, 1] keeps values readable.)
+# The transition to block features maps each feature channel's 0.05 %-99.95 % quantile range onto half values:
+# - [0, 1] for a fixed mode (10 or 11): it spans many octaves of the log-spaced half floats, so small values get
+#   finer endpoints (any range [0, x] works alike; [0, 1] keeps values readable);
+# - [0.5, 1] for a per-block mode choice: one octave, where half-float bits are linear in the value, so a block's
+#   segment in BC6H's interpolation domain is a straight segment of feature values too. Its one-region modes then
+#   have 33 (mode 11) to 132 (mode 13) endpoint levels across the range. Measured at the transition, PCA start:
+#   +0.22 dB on Bricks075B (512), +0.19 dB on the 2K wood material, +0.01 dB on denim (docs/BENCHMARKS.md).
 QUANTILES = (0.0005, 0.9995)
-STORED_RANGE = (0.0, 1.0)
+STORED_RANGE = {"fixed": (0.0, 1.0), "auto": (0.5, 1.0)}
 
 
 @dataclass(frozen=True)
@@ -145,68 +151,84 @@ class StaticFeatures(nn.Module):
 
 
 class BlockFeatures(nn.Module):
-    """Block-based features (§4.1): per 4x4 block of every texture mip, R segments of 2 endpoints (3
-    channels), 16 weights and a fixed partition, stored normalised: endpoints / (2^bits - 1) and weights in
-    [0, 1], so learning rates mean the same for mode 10 and 11. Blocks are row-major over the level.
+    """Block-based features (§4.1): every 4x4 block of every texture mip is one BC6H block in a mode of its own
+    (chosen at the transition: one fixed mode for all, or each block's best), held as two segments of
+    continuous endpoints normalised by the mode's largest endpoint, 16 weights in [0, 1] (positions on the
+    segments, normalised by the largest index) and a partition. One-region blocks use segment 0. Blocks are
+    row-major over the level.
 
-    `level()` decodes with `block_decode` (`decode_level_one_region` in mode 11): bit-exact forward (the exported
-    texture), straight-through rounding and the eq. 7-9 surrogate backward."""
+    `level()` decodes with `block_decode.decode_level`: bit-exact forward (the exported texture),
+    straight-through rounding and the eq. 7-9 surrogate backward."""
 
-    def __init__(self, specs: Sequence[FeatureTextureSpec], mode: Literal[10, 11],
-                 fits: Sequence[partition.BlockFit], device: str | torch.device = "cpu"):
+    def __init__(self, specs: Sequence[FeatureTextureSpec], fits: Sequence[partition.BlockFit],
+                 device: str | torch.device = "cpu"):
         super().__init__()
         self.specs = tuple(specs)
-        self.mode = mode
-        self.spec = bc6h.mode_spec(mode)
-        self.top = float((1 << self.spec.endpoint_bits) - 1)
         self.endpoints = nn.ParameterList()
         self.weights = nn.ParameterList()
+        self._two_regions: list[bool] = []
         for number, fit in enumerate(fits):
-            self.endpoints.append(nn.Parameter(torch.tensor(fit.endpoints / self.top, dtype=torch.float32,
-                                                            device=device)))
-            self.weights.append(nn.Parameter(torch.tensor(fit.weights, dtype=torch.float32, device=device)))
+            modes = block_decode.BlockModes.of(torch.as_tensor(fit.mode), torch.as_tensor(fit.partition))
+            top = modes.top.to(torch.float32)[:, None, None, None]
+            self.endpoints.append(nn.Parameter((torch.as_tensor(fit.endpoints, dtype=torch.float32) / top).to(device)))
+            index = torch.as_tensor(fit.index, dtype=torch.float32) / modes.index_top[:, None].to(torch.float32)
+            self.weights.append(nn.Parameter(index.to(device)))
             # Buffers, so that .to(device) moves them with the parameters.
+            self.register_buffer(f"mode_{number}", torch.as_tensor(fit.mode, device=device))
             self.register_buffer(f"partition_{number}", torch.as_tensor(fit.partition, device=device))
+            for field in ("bits", "index_top", "window", "subset"):
+                self.register_buffer(f"{field}_{number}", getattr(modes, field).to(device))
+            self._two_regions.append(modes.two_regions)
         self._start = np.cumsum([0] + [s.levels for s in self.specs])
-
-    def _partition(self, index: int) -> torch.Tensor:
-        return getattr(self, f"partition_{index}")
 
     def _index(self, texture: int, level: int) -> int:
         return int(self._start[texture]) + level
 
+    def _modes(self, i: int) -> block_decode.BlockModes:
+        return block_decode.BlockModes(*(getattr(self, f"{field}_{i}") for field in
+                                         ("bits", "index_top", "window", "subset")), self._two_regions[i])
+
+    def _units(self, i: int) -> tuple[torch.Tensor, block_decode.BlockModes]:
+        """Level i's endpoints in their modes' units (the parameters times each block's largest endpoint)."""
+        modes = self._modes(i)
+        return self.endpoints[i] * modes.top.to(torch.float32)[:, None, None, None], modes
+
     def level(self, texture: int, level: int) -> torch.Tensor:
         i = self._index(texture, level)
         w, h = self.specs[texture].level_size(level)
-        if self.spec.regions == 1:  # the default presets' mode: closed-form decode straight into image layout
-            return block_decode.decode_level_one_region(self.endpoints[i] * self.top, self.weights[i], h // 4,
-                                                        w // 4)
-        partition = self._partition(i)
-        texels = block_decode.decode_blocks_differentiable(self.endpoints[i] * self.top, self.weights[i],
-                                                           partition, signed=False)  # (nb, 16, 3)
-        return texels.view(h // 4, w // 4, 4, 4, 3).permute(4, 0, 2, 1, 3).reshape(3, h, w)
+        endpoints, modes = self._units(i)
+        return block_decode.decode_level(endpoints, self.weights[i], modes, h // 4, w // 4)
 
     def clamp_(self) -> None:
-        """Keep parameters in their stored ranges (rounding clamps anyway; this stops them drifting far
-        outside where the straight-through gradient would no longer bring them back)."""
+        """Keep parameters in their stored ranges, and every endpoint within its delta window of the stored
+        endpoint 0 (rounding clamps anyway; this stops them drifting far outside, where the straight-through
+        gradient would no longer bring them back)."""
         with torch.no_grad():
-            for p in list(self.endpoints) + list(self.weights):
-                p.clamp_(0.0, 1.0)
+            for i, (endpoints, weights) in enumerate(zip(self.endpoints, self.weights)):
+                weights.clamp_(0.0, 1.0)
+                endpoints.clamp_(0.0, 1.0)
+                units, modes = self._units(i)
+                stored, _ = block_decode.quantize_blocks(units, weights, modes)
+                endpoints.copy_(torch.minimum(torch.maximum(units, stored - 0.5), stored + 0.5)
+                                / modes.top.to(torch.float32)[:, None, None, None])
+
+    def block_modes(self, texture: int, level: int) -> np.ndarray:
+        """The BC6H mode number of every block of one level, (bh, bw) int64."""
+        i = self._index(texture, level)
+        w, h = self.specs[texture].level_size(level)
+        return getattr(self, f"mode_{i}").cpu().numpy().reshape(h // 4, w // 4)
 
     def blocks(self, texture: int, level: int) -> np.ndarray:
-        """The BC6H blocks (bh, bw, 16) uint8 of one level: the rounded parameters encoded as they are."""
+        """The BC6H blocks (bh, bw, 16) uint8 of one level: the quantised parameters encoded as they are."""
         i = self._index(texture, level)
         w, h = self.specs[texture].level_size(level)
         with torch.no_grad():
-            ends = block_decode.quantize_endpoints(self.endpoints[i] * self.top, self.spec.endpoint_bits, False)
-            index = block_decode.quantize_weights(self.weights[i], self.spec.index_bits)
-        ends_np = ends.cpu().numpy().astype(np.int64)
-        index_np = index.cpu().numpy().astype(np.int64)
-        if self.spec.regions == 2:
-            blocks = bc6h.encode_mode10(ends_np, index_np, self._partition(i).cpu().numpy(), signed=False)
-        else:
-            blocks = bc6h.encode_mode11(ends_np[:, 0], index_np, signed=False)
-        return blocks.reshape(h // 4, w // 4, bc6h.BLOCK_BYTES)
+            units, modes = self._units(i)
+            endpoints, index = block_decode.quantize_blocks(units, self.weights[i], modes)
+        mode = getattr(self, f"mode_{i}").cpu().numpy()
+        fit = partition.BlockFit(mode, endpoints.cpu().numpy(), index.cpu().numpy(),
+                                 getattr(self, f"partition_{i}").cpu().numpy(), np.zeros(len(mode)))
+        return partition.encode_fit(fit, signed=False).reshape(h // 4, w // 4, bc6h.BLOCK_BYTES)
 
 
 Features = FreeFeatures | BlockFeatures | StaticFeatures
@@ -241,28 +263,37 @@ class NeuralMaterial(nn.Module):
 # ------------------------------------------------------------------------------------ phase 1 -> phase 2
 
 
-def _feature_range(free: FreeFeatures, texture: int) -> tuple[np.ndarray, np.ndarray]:
-    """Per-channel QUANTILES of all mips of one free feature pyramid: (3,) low and high."""
+def _feature_range(free: FreeFeatures, texture: int, shared: bool) -> tuple[np.ndarray, np.ndarray]:
+    """QUANTILES of all mips of one free feature pyramid: (3,) low and high per channel, or (`shared`) the
+    lowest low and highest high of its channels for all three."""
     values = torch.cat([free.level(texture, l).detach().reshape(FEATURE_CHANNELS, -1)
                         for l in range(free.specs[texture].levels)], dim=1).cpu().numpy()
     if values.shape[1] > 1 << 20:  # quantiles of a strided subsample: plenty, and far cheaper
         values = values[:, :: values.shape[1] // (1 << 20) + 1]
     low, high = np.quantile(values, QUANTILES, axis=1)
+    if shared:
+        low, high = np.full(FEATURE_CHANNELS, low.min()), np.full(FEATURE_CHANNELS, high.max())
     return low, np.maximum(high, low + 1e-6)
 
 
-def to_block_features(free: FreeFeatures, decoder: Decoder, mode: Literal[10, 11]) -> BlockFeatures:
+def to_block_features(free: FreeFeatures, decoder: Decoder, block_mode: BlockMode,
+                      shared_range: bool = False) -> BlockFeatures:
     """Phase 1 -> phase 2 (§5.1): map each feature channel's value range onto STORED_RANGE, fold the inverse map
-    into the decoder's input scale/offset (so the MLP sees the same inputs), then initialise the blocks by the
-    partition search (`partition.fit_blocks`) on the mapped values. Changes `decoder` in place."""
+    into the decoder's input scale/offset (so the MLP sees the same inputs), then fit BC6H blocks to the mapped
+    values (`partition.fit_blocks`: the partition search, and with block_mode "auto" each block's best of the
+    14 modes). Changes `decoder` in place.
+
+    Ranges are per channel, or with `shared_range` one per texture: then a texture's three channels keep their
+    relative scale, and the blocks' line fits weigh them as the decoder does where its inputs are commensurate
+    (features initialised from principal components, `fit.pca`)."""
     device = decoder.input_scale.device
-    c0, c1 = STORED_RANGE
+    c0, c1 = STORED_RANGE["auto" if block_mode == "auto" else "fixed"]
     fits = []
     scale = decoder.input_scale.detach().cpu().numpy().astype(np.float64)
     offset = decoder.input_offset.detach().cpu().numpy().astype(np.float64)
-    regions = bc6h.mode_spec(mode).regions
+    modes = encoder_modes(block_mode)
     for i, spec in enumerate(free.specs):
-        low, high = _feature_range(free, i)
+        low, high = _feature_range(free, i, shared_range)
         # The MLP read x (times scale plus offset); it will read c = c0 + (x - low) / (high - low) * (c1 - c0).
         step = (high - low) / (c1 - c0)
         channels = slice(FEATURE_CHANNELS * i, FEATURE_CHANNELS * (i + 1))
@@ -271,9 +302,11 @@ def to_block_features(free: FreeFeatures, decoder: Decoder, mode: Literal[10, 11
         for level in range(spec.levels):
             x = free.level(i, level).detach().cpu().numpy().astype(np.float64).transpose(1, 2, 0)
             stored = np.clip(c0 + (x - low) / (high - low) * (c1 - c0), c0, c1)
-            fits.append(partition.fit_blocks(bc6h.image_to_block_texels(stored).reshape(-1, 16, 3), regions,
-                                             signed=False))
+            # Without the least-squares refinement: it doubled the transition's time for +0.01 dB of the model's
+            # PSNR (Bricks075B and denim, 512, PCA start).
+            fits.append(partition.fit_blocks(bc6h.image_to_block_texels(stored).reshape(-1, 16, 3), modes,
+                                             signed=False, refine=False))
     with torch.no_grad():
         decoder.input_scale.copy_(torch.from_numpy(scale))
         decoder.input_offset.copy_(torch.from_numpy(offset))
-    return BlockFeatures(free.specs, mode, fits, device)
+    return BlockFeatures(free.specs, fits, device)

@@ -1,12 +1,15 @@
-"""The two-phase fit of paper §5.1: unconstrained features, partition search, BC6H block features.
+"""The two-phase fit of paper §5.1: unconstrained features, the transition to BC6H blocks, block features.
 
-`fit` is a plain loop per phase: sample a batch of random (u, v) and one random scale s, sample the
-reference F(M) and the model G at them, MSE (eq. 5), Adam step, exponential learning-rate decay.
+The start is random (the paper's) or the material's principal components (`fit.pca`); the transition fits
+blocks of one mode, or of each block's best mode (`to_block_features`). `fit` is then a plain loop per phase:
+sample a batch (`fit.batches`), the model G and the reference F(M) at it, MSE (eq. 5), Adam step, learning-rate
+decay (exponential or cosine).
 """
 
 from __future__ import annotations
 
 import copy
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Optional
@@ -17,13 +20,14 @@ from bcf.core.errors import InputError
 from bcf.core.fit.batches import BatchSampler
 from bcf.core.fit.model import (BlockFeatures, Decoder, FeatureTextureSpec, FreeFeatures, NeuralMaterial,
                                 feature_textures, to_block_features)
+from bcf.core.fit.pca import pca_start
 from bcf.core.fit.sampling import ReferenceMaterial
 from bcf.core.material.texture_set import TextureSet
-from bcf.core.options import ResolvedOptions
+from bcf.core.options import ResolvedOptions, Schedule
 from bcf.core.psnr import psnr_from_mse
 
 __all__ = ["DeviceUnavailableError", "FitResult", "TrainingProgress", "TrainingStopped", "adam_optimizer", "fit",
-           "require_device"]
+           "learning_rate_factor", "require_device"]
 
 PROGRESS_INTERVAL_S = 0.5
 HISTORY_INTERVAL_S = 2.0
@@ -95,14 +99,35 @@ def adam_optimizer(groups: list[dict]) -> torch.optim.Adam:
         return torch.optim.Adam(groups)
 
 
-def _train_phase(model: NeuralMaterial, batches: BatchSampler, phase: int, iterations: int,
+def learning_rate_factor(schedule: Schedule, decay: float, iteration: int, iterations: int) -> float:
+    """The learning rate of the step after `iteration` (of `iterations`) as a fraction of the phase's first:
+    decay^iteration, or the cosine from 1 down to 0 at the last iteration (RTXNTC's schedule, fit-levers.md)."""
+    if schedule == "cosine":
+        return 0.5 * (1.0 + math.cos(math.pi * iteration / max(iterations, 1)))
+    return decay**iteration
+
+
+def _parameter_groups(model: NeuralMaterial, lr_features: float, lr_mlp: float,
+                      lr_endpoints: Optional[float]) -> list[dict]:
+    """Adam's parameter groups: block endpoints (where they have a rate of their own), the rest of the features,
+    the decoder."""
+    features = model.features
+    if isinstance(features, BlockFeatures) and lr_endpoints is not None:
+        return [{"params": list(features.endpoints), "lr": lr_endpoints},
+                {"params": list(features.weights), "lr": lr_features},
+                {"params": list(model.decoder.parameters()), "lr": lr_mlp}]
+    return [{"params": list(features.parameters()), "lr": lr_features},
+            {"params": list(model.decoder.parameters()), "lr": lr_mlp}]
+
+
+def _train_phase(model: NeuralMaterial, batches: BatchSampler, phase: int, iterations: int, schedule: Schedule,
                  lr_features: float, lr_mlp: float, decay: float, start: float, history: list[HistoryPoint],
                  progress: Optional[ProgressCallback],
                  should_stop: Optional[StopCallback], checkpoint: Optional[CheckpointCallback] = None,
-                 checkpoint_every: int = 0) -> None:
-    optimizer = adam_optimizer([{"params": list(model.features.parameters()), "lr": lr_features},
-                                {"params": list(model.decoder.parameters()), "lr": lr_mlp}])
-    base_lrs = [lr_features, lr_mlp]
+                 checkpoint_every: int = 0, lr_endpoints: Optional[float] = None) -> None:
+    groups = _parameter_groups(model, lr_features, lr_mlp, lr_endpoints)
+    base_lrs = [group["lr"] for group in groups]
+    optimizer = adam_optimizer(groups)
     phase_start = time.perf_counter()
     last_report = last_history = phase_start
     running = None
@@ -116,8 +141,9 @@ def _train_phase(model: NeuralMaterial, batches: BatchSampler, phase: int, itera
         optimizer.step()
         if isinstance(model.features, BlockFeatures):
             model.features.clamp_()
+        factor = learning_rate_factor(schedule, decay, iteration, iterations)
         for group, base in zip(optimizer.param_groups, base_lrs):
-            group["lr"] = base * decay**iteration
+            group["lr"] = base * factor
         # A running mean kept on the device; read back only when reported (a read is a GPU sync).
         running = loss.detach() if running is None else running * 0.95 + loss.detach() * 0.05
         now = time.perf_counter()
@@ -157,16 +183,19 @@ def fit(material: TextureSet, options: ResolvedOptions, progress: Optional[Progr
     history: list[HistoryPoint] = []
     start = time.perf_counter()
 
-    free = FreeFeatures(specs, init_generator).to(device)
-    decoder = Decoder(options.hidden).to(device)
+    if options.init == "pca":
+        free, decoder = pca_start(reference, specs, options.hidden, init_generator)
+    else:
+        free, decoder = FreeFeatures(specs, init_generator).to(device), Decoder(options.hidden).to(device)
     model = NeuralMaterial(free, decoder, options.address)
-    _train_phase(model, batches, 1, options.phase1_iterations, options.lr_features_phase1, options.lr_mlp_phase1,
-                 options.decay_phase1, start, history, progress, should_stop, checkpoint, checkpoint_every)
+    _train_phase(model, batches, 1, options.phase1_iterations, options.schedule, options.lr_features_phase1,
+                 options.lr_mlp_phase1, options.decay_phase1, start, history, progress, should_stop, checkpoint,
+                 checkpoint_every)
     phase1_s = time.perf_counter() - start
     phase1_model = copy.deepcopy(model)
 
     t0 = time.perf_counter()
-    blocks = to_block_features(free, decoder, options.block_mode)
+    blocks = to_block_features(free, decoder, options.block_mode, shared_range=options.init == "pca")
     model = NeuralMaterial(blocks, decoder, options.address)
     transition_s = time.perf_counter() - t0
     naive_model = copy.deepcopy(model)  # the "naive BC6" baseline of Fig. 4: compressed after training
@@ -174,7 +203,8 @@ def fit(material: TextureSet, options: ResolvedOptions, progress: Optional[Progr
         checkpoint(2, 0, model)
 
     t0 = time.perf_counter()
-    _train_phase(model, batches, 2, options.phase2_iterations, options.lr_features_phase2, options.lr_mlp_phase2,
-                 options.decay_phase2, start, history, progress, should_stop, checkpoint, checkpoint_every)
+    _train_phase(model, batches, 2, options.phase2_iterations, options.schedule, options.lr_features_phase2,
+                 options.lr_mlp_phase2, options.decay_phase2, start, history, progress, should_stop, checkpoint,
+                 checkpoint_every, options.lr_endpoints_phase2)
     phase2_s = time.perf_counter() - t0
     return FitResult(model, phase1_model, naive_model, specs, phase1_s, transition_s, phase2_s, history)

@@ -282,9 +282,9 @@ def _header(report: Report) -> str:
     o, m = report.options, report.material
     items = [
         ("Resolution", f"{m.width} x {m.height}"),
-        ("Options", f"preset {o.preset}, features {o.features}, BC6H block mode {o.block_mode}, hidden {o.hidden}, "
-                    f"{o.phase1_iterations} + {o.phase2_iterations} iterations, batch {o.batch_size}, "
-                    f"address {o.address}, seed {o.seed}"),
+        ("Options", f"preset {o.preset}, features {o.features}, BC6H block mode {o.block_mode}, {o.init} start, "
+                    f"hidden {o.hidden}, {o.phase1_iterations} + {o.phase2_iterations} iterations, "
+                    f"batch {o.batch_size}, address {o.address}, seed {o.seed}"),
         ("Normal map", f"{m.normal_convention}, "
                        f"{'ARM packed' if m.arm_packed else 'separate AO / roughness / metalness'}"),
         ("Device", report.device),
