@@ -109,9 +109,12 @@ def _no_command(prog: str) -> Callable[..., int]:
 
 
 def _invalid(exc: pydantic.ValidationError) -> str:
-    """A model's validation errors, each naming its flag; a validator's own message is kept whole."""
-    return "; ".join(f"{flags([str(e['loc'][-1])])}: {e['ctx']['error'] if e['type'] == 'value_error' else e['msg']}"
-                     for e in exc.errors())
+    """A model's validation errors, each naming its flag (a check of the whole model names none); a validator's
+    own message is kept whole."""
+    def text(error: dict) -> str:
+        message = error["ctx"]["error"] if error["type"] == "value_error" else error["msg"]
+        return f"{flags([str(error['loc'][-1])])}: {message}" if error["loc"] else str(message)
+    return "; ".join(text(e) for e in exc.errors())
 
 
 def _message(exc: BaseException) -> str:

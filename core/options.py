@@ -8,9 +8,9 @@ manifest and report record, so a result always says exactly how it was made.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal, Optional, Sequence
+from typing import Annotated, Literal, Optional, Sequence
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator, model_validator
 
 __all__ = ["BASELINES", "FEATURE_SCALES", "PRESETS", "Address", "BaselineSpec", "BlockMode", "CompressOptions",
            "Device", "FeatureSize", "Init", "JobOptions", "Preset", "ResolvedOptions", "Schedule", "TrainingSchedule",
@@ -20,7 +20,12 @@ Preset = Literal["fast", "default", "paper"]
 Address = Literal["wrap", "clamp"]
 Device = Literal["cpu", "cuda"]
 FeatureSize = Literal["0.5k", "1k", "2k"]
-BlockMode = Literal[10, 11, "auto"]
+def _block_mode_number(value: object) -> object:
+    """"10" and "11" (a command line's strings) as the mode numbers they name."""
+    return int(value) if value in ("10", "11") else value
+
+
+BlockMode = Annotated[Literal[10, 11, "auto"], BeforeValidator(_block_mode_number)]
 Init = Literal["random", "pca"]
 Schedule = Literal["exponential", "cosine"]
 Codec = Literal["bc1_bc5", "astc", "naive_bc6"]  # baseline codecs
@@ -133,6 +138,19 @@ class CompressOptions(BaseModel):
                                             "(default: the preset's)")
     init: Optional[Init] = Field(None, description="start of the features and the MLP: random or pca (default: the "
                                  "preset's)")
+
+    @model_validator(mode="after")
+    def _random_start_needs_phase1(self) -> "CompressOptions":
+        """A random start trained by phase 2 alone is noise: fast and default skip phase 1, which only the
+        principal-component start may do."""
+        schedule = PRESETS[self.preset]
+        init = self.init or schedule.init
+        phase1 = schedule.phase1_iterations if self.phase1_iterations is None else self.phase1_iterations
+        phase2 = schedule.phase2_iterations if self.phase2_iterations is None else self.phase2_iterations
+        if init == "random" and phase1 == 0 and phase2 > 0:
+            raise ValueError(f"init random needs phase-1 iterations (preset {self.preset} has none: it starts from "
+                             "principal components); use preset paper or set phase1_iterations")
+        return self
 
 
 class JobOptions(CompressOptions):

@@ -197,8 +197,8 @@ def _run_baseline(name: str, material: TextureSet, reference: ReferenceMaterial,
         return baseline_codecs.run_codec_baseline(name, material.channels, reference, folder)
     naive = result.naive_model.to("cpu").eval()
     scored = baseline_codecs.evaluate_baseline(
-        "our phase-1 features put in BC6H blocks by the partition search after training, no phase 2 "
-        "(paper Fig. 4)", "bcf partition search", material.width, material.height, naive, our_bytes,
+        "our phase-1 features (or the principal-component start) put in BC6H blocks by the transition, no phase 2 "
+        "(paper Fig. 4)", "bcf block fit", material.width, material.height, naive, our_bytes,
         result.transition_s, reference)
     return scored, naive
 

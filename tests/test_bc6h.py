@@ -391,6 +391,8 @@ def test_fit_blocks_keeps_the_best_mode_and_reports_its_exact_error() -> None:
         error = ((bc6h.value_to_half_bits(decoded.astype(np.float64), False) - target) ** 2).sum((1, 2))
         assert np.allclose(error, fit.error, rtol=1e-9, atol=1e-6), modes
         assert set(np.unique(fit.mode)) <= set(modes)
+    threaded = bc6h_partition.fit_blocks(texels, every, signed=False, chunk=100, workers=3)
+    assert all(np.array_equal(getattr(threaded, f), getattr(fits[every], f)) for f in ("mode", "endpoints", "index"))
     best_single = np.minimum.reduce([fits[m].error for m in [(11,), (10,), (6,)]])
     assert np.all(fits[every].error <= best_single + 1e-6)
     assert len(np.unique(fits[every].mode)) >= 4  # a real texture uses several modes

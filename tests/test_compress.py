@@ -29,6 +29,7 @@ from bcf.core import load_export
 from bcf.core.codec import bc6h
 from bcf.core import pipeline as compress
 from bcf.core.codec import containers
+from bcf.core.codec.textures import mode_histogram
 from bcf.core.export import artifacts as export
 from bcf.core.report import html as html_report
 from bcf.core.fit import training
@@ -613,3 +614,23 @@ def test_compress_explicit_files(sample_dir: Path, tmp_path: Path) -> None:
                                                                  "arm": "arm.png"}
     assert manifest.material.arm_packed and manifest.material.name == "albedo"
     assert (manifest.options.phase1_iterations, manifest.options.phase2_iterations) == (30, 30)
+
+
+def test_block_mode_flag_takes_mode_numbers_and_auto(sample_dir: Path, tmp_path: Path) -> None:
+    """`--block-mode 10` is mode 10 (a number on the command line, though the option also takes `auto`), and the
+    exported texture then holds mode-10 blocks only."""
+    output = tmp_path / "out"
+    result = run_bcf("compress", sample_dir, "-o", output, *CLI_TINY, "--block-mode", "10", "-q")
+    assert result.returncode == 0, result.stderr
+    assert export.read_manifest(output).options.block_mode == 10
+    texture = containers.read_dds(output / "features_0.dds")
+    assert all(set(mode_histogram(level)) == {10} for level in texture.levels)
+
+
+def test_random_start_without_phase_1_is_refused(sample_dir: Path, tmp_path: Path) -> None:
+    """The fast and default presets skip phase 1, which only the principal-component start may do: a random
+    start there is a user error, not a noise texture."""
+    output = tmp_path / "out"
+    result = run_bcf("compress", sample_dir, "-o", output, "--preset", "fast", "--init", "random", "-q")
+    assert_user_error(result, "init random needs phase-1 iterations", "preset paper")
+    assert_not_created(output)

@@ -350,3 +350,7 @@ def test_presets_resolve_with_overrides() -> None:
     assert ResolvedOptions(**older).lr_endpoints_phase2 is None
     with pytest.raises(ValueError):
         CompressOptions(preset="fast", unknown=1)
+    with pytest.raises(ValueError, match="phase-1 iterations"):  # a random start needs phase 1
+        CompressOptions(preset="default", init="random")
+    assert resolve_options(CompressOptions(preset="default", init="random", phase1_iterations=100)).init == "random"
+    assert CompressOptions(block_mode="10").block_mode == 10  # a command line's string

@@ -14,6 +14,7 @@ holding each component, exactly (up to float rounding), and the finest mip up to
 
 from __future__ import annotations
 
+from functools import lru_cache, partial
 from typing import Sequence
 
 import torch
@@ -39,11 +40,23 @@ class PrincipalComponents:
     def __init__(self, mean: torch.Tensor, axes: torch.Tensor, sigma: torch.Tensor):
         self.mean, self.axes, self.sigma = mean, axes, sigma
 
+    def _chunks(self, image: torch.Tensor):
+        """(start, coefficients (C, n) float32) of `image`'s texels, a chunk at a time (bounded memory)."""
+        flat = image.reshape(image.shape[0], -1)
+        axes, mean = self.axes.T.float(), self.mean.float()[:, None]
+        for start in range(0, flat.shape[1], _CHUNK):
+            yield start, axes @ (flat[:, start:start + _CHUNK].float() - mean)
+
     def coefficients(self, image: torch.Tensor) -> torch.Tensor:
         """(C, h, w) image -> (C, h, w) float32 coefficients on the axes."""
-        channels, h, w = image.shape
-        centred = image.reshape(channels, -1).double() - self.mean[:, None]
-        return (self.axes.T @ centred).reshape(channels, h, w).float()
+        out = torch.empty(image.shape, dtype=torch.float32, device=image.device).reshape(image.shape[0], -1)
+        for start, chunk in self._chunks(image):
+            out[:, start:start + chunk.shape[1]] = chunk
+        return out.reshape(image.shape)
+
+    def lowest(self, image: torch.Tensor) -> torch.Tensor:
+        """(C,) smallest coefficient of each component over `image`'s texels."""
+        return torch.stack([chunk.amin(dim=1) for _, chunk in self._chunks(image)]).amin(dim=0)
 
 
 def principal_components(image: torch.Tensor) -> PrincipalComponents:
@@ -86,6 +99,8 @@ def pca_start(reference: ReferenceMaterial, specs: Sequence[FeatureTextureSpec],
     components = min(channels, slots, hidden)
     gain = SPREAD / max(float(pca.sigma[0]), 1e-6)
     free = FreeFeatures(specs, generator)
+    # Several pyramids have levels of one size (T0's level 1 is T1's level 0): each size projected once.
+    coefficients_of = lru_cache(maxsize=None)(partial(_level_coefficients, pca, reference))
     with torch.no_grad():
         for texture, spec in enumerate(specs):
             for level in range(spec.levels):
@@ -95,11 +110,11 @@ def pca_start(reference: ReferenceMaterial, specs: Sequence[FeatureTextureSpec],
                 used = range(first, min(first + FEATURE_CHANNELS, components))
                 if len(used):
                     width, height = spec.level_size(level)
-                    coefficients = _level_coefficients(pca, reference, width, height)
+                    coefficients = coefficients_of(width, height)
                     texels[: len(used)] = 0.5 + coefficients[used.start:used.stop].to(texels.device) * gain
     free = free.to(device)
     decoder = Decoder(hidden).to(device)
-    lowest = pca.coefficients(reference.mip(0)).amin(dim=(1, 2)).double()  # box filters never go below these
+    lowest = pca.lowest(reference.mip(0)).double()  # box filters never go below these
     with torch.no_grad():
         # Unit k computes coefficient k plus a bias that keeps it positive, so its ReLU passes it unchanged:
         # h_k = (x_k - 0.5) / gain + bias_k; the output layer adds axis_k * (h_k - bias_k) to the mean.

@@ -74,7 +74,7 @@ class TrainingStopped(Exception):
 class FitResult:
     model: NeuralMaterial  # phase-2 model with BlockFeatures (or phase 1's if phase 2 has 0 iterations)
     phase1_model: NeuralMaterial  # snapshot at the end of phase 1 (unconstrained features)
-    naive_model: NeuralMaterial  # phase 1's features put in blocks by the partition search, before phase 2
+    naive_model: NeuralMaterial  # phase 1's features put in blocks by the transition, before phase 2
     specs: tuple[FeatureTextureSpec, ...]
     phase1_s: float
     transition_s: float

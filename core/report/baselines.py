@@ -9,8 +9,9 @@ the same filter as the reference pyramid) texture by texture, down to 1x1, as an
 - ``astc_<n>x<n>_full`` / ``_half`` for n = 12, 8, 6: ASTC LDR (linear) with Arm's astcenc at its "thorough"
   preset (quality 98), albedo and ARM as RGB, the normal's x, y as the R, G of an RG01 image: measured
   higher PSNR on x, y than astcenc's rrrg normal-map mode, which optimises angles.
-- ``naive_bc6``: our own phase-1 features compressed afterwards by the partition search, without the
-  emulated-BC6H phase 2 (the paper's Fig. 4): what the second phase buys. It comes from `training.fit`
+- ``naive_bc6``: our own phase-1 features (the principal-component start when phase 1 has no iterations) put
+  in blocks by the transition, without the emulated-BC6H phase 2 (the paper's Fig. 4): what the second phase
+  buys. It comes from `training.fit`
   (`FitResult.naive_model`), so it exists only inside `compress.compress_material`.
 
 A half-resolution baseline is evaluated like the full one: at mip m the renderer reads the baseline's
