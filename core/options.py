@@ -87,7 +87,7 @@ def _decay(final_ratio: float, iterations: int) -> float:
 # continuous scale and, of the mip steps, half at texel centres. Phase 1 is skipped (its rates, for users who
 # ask for iterations, are as gentle).
 _POLISH = dict(phase1_iterations=0, lr_features_phase1=2e-3, lr_mlp_phase1=1e-3, decay_phase1=1.0,
-               lr_features_phase2=5e-3, lr_endpoints_phase2=5e-4, lr_mlp_phase2=1e-3, decay_phase2=1.0,
+               lr_features_phase2=5e-4, lr_endpoints_phase2=5e-5, lr_mlp_phase2=1e-3, decay_phase2=1.0,
                schedule="cosine", continuous_fraction=0.25, centre_fraction=0.5, hidden=16, block_mode="auto",
                init="pca")
 PRESETS: dict[str, TrainingSchedule] = {

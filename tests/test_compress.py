@@ -32,6 +32,7 @@ from bcf.core.codec import containers
 from bcf.core.codec.textures import mode_histogram
 from bcf.core.export import artifacts as export
 from bcf.core.report import html as html_report
+from bcf.core.report import metrics
 from bcf.core.fit import training
 from bcf.core.material.texture_set import TextureSet, load_material
 from bcf.core.options import CompressOptions, resolve_options
@@ -241,6 +242,33 @@ def test_exported_features_equal_the_training_forward_pass_in_three_decoders(
     # The trained features are not degenerate (e.g. all one value): the comparison means something.
     level0 = features.level(0, 0).detach().cpu().numpy()
     assert np.unique(level0).size > 100
+
+
+def test_centre_error_is_the_reports_measure(chainmail_set: TextureSet) -> None:
+    """`training.centre_error`, which picks between phase 2's result and its start, is the mean over mips of the
+    report's texel-centre MSE over all channels."""
+    reference = ReferenceMaterial(chainmail_set.channels, "wrap")
+    result = training.fit(chainmail_set, resolve_options(CompressOptions(preset="fast", phase2_iterations=0)))
+    model = result.model.eval()
+    scores = metrics.evaluate(model, reference)
+    assert training.centre_error(model, reference) == pytest.approx(np.mean([m["mse"]["all"] for m in scores]),
+                                                                    rel=1e-5)
+
+
+def test_a_phase_2_that_ends_below_its_start_returns_the_start(chainmail_set: TextureSet) -> None:
+    """Rates far too high wreck the blocks in a few steps: the fit returns its start (the transition's blocks),
+    not the wreck; after a short random-start phase 1, whose blocks start far from the material, it keeps phase 2's
+    result."""
+    reference = ReferenceMaterial(chainmail_set.channels, "wrap")
+    wrecked = training.fit(chainmail_set, resolve_options(CompressOptions(
+        preset="fast", phase2_iterations=20, batch_size=4096, lr_features_phase2=0.5, lr_mlp_phase2=0.5)))
+    assert wrecked.start_kept
+    assert training.centre_error(wrecked.model, reference) == training.centre_error(wrecked.naive_model, reference)
+    assert wrecked.model is not wrecked.naive_model
+    polished = training.fit(chainmail_set, resolve_options(CompressOptions(
+        preset="fast", init="random", phase1_iterations=150, phase2_iterations=150, batch_size=4096)))
+    assert not polished.start_kept
+    assert training.centre_error(polished.model, reference) < training.centre_error(polished.naive_model, reference)
 
 
 # ----------------------------------------------------------------------------------- 2. report.json

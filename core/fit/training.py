@@ -3,7 +3,7 @@
 The start is random (the paper's) or the material's principal components (`fit.pca`); the transition fits
 blocks of one mode, or of each block's best mode (`to_block_features`). `fit` is then a plain loop per phase:
 sample a batch (`fit.batches`), the model G and the reference F(M) at it, MSE (eq. 5), Adam step, learning-rate
-decay (exponential or cosine).
+decay (exponential or cosine); at the end, phase 2's result or its start, whichever scores better.
 """
 
 from __future__ import annotations
@@ -26,11 +26,12 @@ from bcf.core.material.texture_set import TextureSet
 from bcf.core.options import ResolvedOptions, Schedule
 from bcf.core.psnr import psnr_from_mse
 
-__all__ = ["DeviceUnavailableError", "FitResult", "TrainingProgress", "TrainingStopped", "adam_optimizer", "fit",
-           "learning_rate_factor", "require_device"]
+__all__ = ["DeviceUnavailableError", "FitResult", "TrainingProgress", "TrainingStopped", "adam_optimizer",
+           "centre_error", "fit", "learning_rate_factor", "require_device"]
 
 PROGRESS_INTERVAL_S = 0.5
 HISTORY_INTERVAL_S = 2.0
+CENTRE_CHUNK = 1 << 16  # texels per forward pass of `centre_error`
 
 
 @dataclass(frozen=True)
@@ -80,6 +81,7 @@ class FitResult:
     transition_s: float
     phase2_s: float
     history: list[HistoryPoint] = field(default_factory=list)
+    start_kept: bool = False  # phase 2 ended worse than its start at texel centres, so `model` is the start
 
 
 ProgressCallback = Callable[[TrainingProgress], None]
@@ -206,5 +208,34 @@ def fit(material: TextureSet, options: ResolvedOptions, progress: Optional[Progr
     _train_phase(model, batches, 2, options.phase2_iterations, options.schedule, options.lr_features_phase2,
                  options.lr_mlp_phase2, options.decay_phase2, start, history, progress, should_stop, checkpoint,
                  checkpoint_every, options.lr_endpoints_phase2)
+    # Phase 2 also learns filtering (its continuous and jittered samples) and can end below its start at texel
+    # centres, where the start is already close (Metal012 at 2k, 512²: 63.4 dB start, 60.0 after 2,000 steps;
+    # docs/BENCHMARKS.md): the fit keeps whichever of the two scores better on the report's measure.
+    start_kept = options.phase2_iterations > 0 and centre_error(naive_model, reference) < centre_error(model,
+                                                                                                       reference)
+    if start_kept:
+        model = copy.deepcopy(naive_model)
     phase2_s = time.perf_counter() - t0
-    return FitResult(model, phase1_model, naive_model, specs, phase1_s, transition_s, phase2_s, history)
+    return FitResult(model, phase1_model, naive_model, specs, phase1_s, transition_s, phase2_s, history, start_kept)
+
+
+@torch.no_grad()
+def centre_error(model: NeuralMaterial, reference: ReferenceMaterial) -> float:
+    """The mean over mips of the MSE at every texel centre of the mip (scale s = mip), of outputs saturated to
+    [0, 1] as stored: the measure of the report's aggregate PSNR, in chunks of rows (bounded memory)."""
+    errors = []
+    for level in range(reference.levels):
+        target = reference.mip(level)
+        channels, height, width = target.shape
+        rows = max(1, CENTRE_CHUNK // width)
+        total = 0.0
+        for y in range(0, height, rows):
+            ys = torch.arange(y, min(y + rows, height), device=target.device, dtype=torch.float32)
+            xs = torch.arange(width, device=target.device, dtype=torch.float32)
+            gy, gx = torch.meshgrid((ys + 0.5) / height, (xs + 0.5) / width, indexing="ij")
+            uv = torch.stack([gx.reshape(-1), gy.reshape(-1)], dim=1)
+            decoded = model(uv, float(level)).clamp(0.0, 1.0)
+            expected = target[:, y:y + rows].reshape(channels, -1).t()
+            total += float(torch.sum((decoded - expected) ** 2))
+        errors.append(total / target.numel())
+    return sum(errors) / len(errors)
