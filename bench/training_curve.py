@@ -4,7 +4,9 @@ Trains with a preset (iteration counts overridable) and, every --eval-every iter
 current model exactly as the report does for exported files (texel centres of every mip, PSNR of the mean
 MSE over mips, outputs clamped to [0, 1]). Phase-2 models decode their block features bit-exactly, so
 the numbers equal those of the exported files up to the fp16 rounding of the weights. Evaluation time is
-excluded from the wall-clock column. The last point also has the report's 1 spp jittered score.
+excluded from the wall-clock column. The start of phase 2 and its last point also have the report's 1 spp
+jittered score; `start_kept` says whether the fit returned its start because phase 2 ended below it at texel
+centres (the last point is phase 2's own result either way). With --eval-every 0 only those two are scored.
 
     .venv/bin/python bench/training_curve.py ../shared/materials/wood_peeling_paint_weathered \
         --preset default --phase2-iterations 10000 --eval-every 1000 -o bench/results/curve_wood.json
@@ -101,7 +103,7 @@ def main() -> None:
                  "psnr_all": round(summary.aggregate.psnr.all, 3), "ssim_all": round(summary.aggregate.ssim.all, 4),
                  "psnr": summary.aggregate.psnr.model_dump(),
                  "psnr_per_mip": [round(m.psnr.all, 2) for m in summary.per_mip]}
-        if phase == 2 and iteration == options.phase2_iterations:  # the report's 1 spp score, at the end
+        if phase == 2 and iteration in (0, options.phase2_iterations):  # the 1 spp score of start and end
             jittered = report.summarise(metrics.evaluate(model_cpu, reference, JITTER_SEED), sizes)
             point["jittered_psnr_all"] = round(jittered.aggregate.psnr.all, 3)
         points.append(point)
@@ -111,7 +113,8 @@ def main() -> None:
     result = training.fit(texture_set, options, checkpoint=checkpoint, checkpoint_every=args.eval_every)
     out = {"material": texture_set.source.name, "size": [texture_set.width, texture_set.height],
            "options": options.model_dump(), "phase1_s": result.phase1_s, "phase2_s": result.phase2_s,
-           "evaluation_s": evaluation_s, "points": points}
+           "evaluation_s": evaluation_s, "start_kept": result.start_kept, "points": points}
+    print(json.dumps({"start_kept": result.start_kept}), flush=True)
     if args.output:
         args.output.parent.mkdir(parents=True, exist_ok=True)
         args.output.write_text(json.dumps(out, indent=1) + "\n")

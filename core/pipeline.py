@@ -173,7 +173,8 @@ def compress_material(material: TextureSet, options: CompressOptions | ResolvedO
             timing=report.TimingReport(phase1_s=result.phase1_s, transition_s=result.transition_s,
                                        phase2_s=result.phase2_s, export_s=export_s, evaluation_s=evaluation_s,
                                        total_s=0.0),
-            history=[report.HistoryEntry(**vars(h)) for h in result.history], baselines=baseline_reports)
+            history=[report.HistoryEntry(**vars(h)) for h in result.history], start_kept=result.start_kept,
+            baselines=baseline_reports)
         say("writing report.html")
         crops = html_report.select_crops(reference, decoders)
         rep.timing.total_s = time.perf_counter() - started

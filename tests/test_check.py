@@ -106,6 +106,23 @@ def test_incomparable_baselines_are_errors(case: str, export_folder: Path, tmp_p
     assert expected in result.stderr, result.stderr
 
 
+@pytest.mark.parametrize("value", [float("nan"), "NaN", float("inf"), "-Infinity"])
+@pytest.mark.parametrize("which", ["baseline", "report"])
+def test_a_score_that_is_not_a_number_is_an_error(value: object, which: str, export_folder: Path,
+                                                  tmp_path: Path) -> None:
+    """NaN or infinite PSNR, as a JSON number or a string, in the report or in the baseline: never a pass."""
+    def poison(data: dict[str, Any]) -> None:
+        data["per_mip"][0]["psnr"]["all"] = value
+
+    edited = edited_baseline(export_folder, tmp_path / "edited.json", poison)
+    pristine = export_folder / REPORT_FILE
+    report, baseline = (pristine, edited) if which == "baseline" else (edited, pristine)
+    result = run_bcf("check", report, "--baseline", baseline)
+    assert result.returncode == 2, (result.stdout, result.stderr)
+    assert result.stderr.startswith("bcf: error:") and result.stderr.count("\n") == 1, result.stderr
+    assert "not a bcf report" in result.stderr and "per_mip.0.psnr.all" in result.stderr, result.stderr
+
+
 def test_check_reads_exactly_the_scores_in_the_report(export_folder: Path, tmp_path: Path) -> None:
     from bcf.core.report import check
     from bcf.core.report import report_json as report_io

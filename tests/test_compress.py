@@ -296,6 +296,7 @@ def test_report_has_every_field_and_true_sizes(which: str, request: pytest.Fixtu
         for metric in ("psnr", "ssim"):
             assert math.isfinite(dig(data, f"aggregate.{metric}.{group}"))
     assert data["timing"]["phase1_s"] > 0 and data["timing"]["phase2_s"] > 0
+    assert isinstance(data["start_kept"], bool)
 
     # per mip: one entry per material mip, in order, with every group's PSNR and SSIM
     assert len(data["per_mip"]) == manifest["mips"] == material_mip_count(manifest["width"], manifest["height"])

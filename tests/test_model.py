@@ -14,7 +14,8 @@ from bcf.core.fit import pca, training
 from bcf.core.report import metrics
 from bcf.core.fit import model
 from bcf.core.report import report_json as report
-from bcf.core.options import PRESETS, CompressOptions, ResolvedOptions, resolve_options
+from bcf.core.options import (MAX_BATCH, MAX_ITERATIONS, MAX_LEARNING_RATE, MAX_SEED, PRESETS, CompressOptions,
+                              ResolvedOptions, resolve_options)
 from bcf.core.export.decode import render_mip
 from bcf.core.fit.batches import BatchSampler
 from bcf.core.fit.sampling import (ReferenceMaterial, material_mip_count, sample_bicubic, sample_bilinear,
@@ -338,11 +339,13 @@ def test_presets_resolve_with_overrides() -> None:
         if preset.schedule == "exponential":
             assert preset.decay_phase1 ** preset.phase1_iterations == pytest.approx(0.082, rel=0.1)
             assert preset.decay_phase2 ** preset.phase2_iterations == pytest.approx(0.135, rel=0.1)
-        else:  # cosine ones at 0
-            assert training.learning_rate_factor("cosine", 1.0, 0, preset.phase2_iterations) == 1.0
-            assert training.learning_rate_factor("cosine", 1.0, preset.phase2_iterations,
-                                                 preset.phase2_iterations) == pytest.approx(0.0, abs=1e-12)
+        else:  # cosine ones at 0, whatever the iteration count
+            for iterations in (300, 2000):
+                assert training.learning_rate_factor("cosine", 1.0, 0, iterations) == 1.0
+                assert training.learning_rate_factor("cosine", 1.0, iterations, iterations) == pytest.approx(
+                    0.0, abs=1e-12)
     assert (PRESETS["default"].init, PRESETS["default"].block_mode) == ("pca", "auto")
+    assert PRESETS["fast"].phase2_iterations == 0  # the start alone
     # Manifests written before the start, schedule and endpoint rate existed read as the paper's fit.
     older = resolve_options(CompressOptions(preset="paper")).model_dump(exclude={"init", "schedule",
                                                                                  "lr_endpoints_phase2"})
@@ -350,7 +353,21 @@ def test_presets_resolve_with_overrides() -> None:
     assert ResolvedOptions(**older).lr_endpoints_phase2 is None
     with pytest.raises(ValueError):
         CompressOptions(preset="fast", unknown=1)
-    with pytest.raises(ValueError, match="phase-1 iterations"):  # a random start needs phase 1
-        CompressOptions(preset="default", init="random")
+    for preset in ("default", "fast"):  # a random start needs phase 1, with or without phase 2
+        with pytest.raises(ValueError, match="phase-1 iterations"):
+            CompressOptions(preset=preset, init="random")
     assert resolve_options(CompressOptions(preset="default", init="random", phase1_iterations=100)).init == "random"
     assert CompressOptions(block_mode="10").block_mode == 10  # a command line's string
+
+
+@pytest.mark.parametrize("field, value", [("seed", 2**64), ("seed", -1), ("phase2_iterations", 10**12),
+                                          ("phase1_iterations", 10**12), ("batch_size", 10**9),
+                                          ("lr_features_phase2", 1e30), ("lr_mlp_phase1", 2.0),
+                                          ("lr_endpoints_phase2", float("inf")), ("lr_features_phase1", float("nan"))])
+def test_options_beyond_any_useful_value_are_refused(field: str, value: object) -> None:
+    """What a remote client sends is bounded before a fit starts: no overflow, no runaway memory or time."""
+    with pytest.raises(ValueError, match=field):
+        CompressOptions(**{field: value})
+    limits = CompressOptions(seed=MAX_SEED, phase2_iterations=MAX_ITERATIONS, batch_size=MAX_BATCH,
+                             lr_features_phase2=MAX_LEARNING_RATE)  # the bounds themselves are allowed
+    assert limits.seed == MAX_SEED

@@ -216,6 +216,13 @@ BAD_UPLOADS: dict[str, BadRequest] = {
     "options-device": BadRequest(422, ('options {"device": ...}', "chosen by the worker"), material,
                                  options({"device": "cuda"})),
     "options-bad-baseline": BadRequest(422, ("baseline", "nope"), material, options({"baselines": ["nope"]})),
+    "options-endless": BadRequest(422, ("phase2_iterations", "less than or equal"), material,
+                                  options({"phase2_iterations": 10**12})),
+    "options-huge-batch": BadRequest(422, ("batch_size", "less than or equal"), material,
+                                     options({"batch_size": 10**9})),
+    "options-seed-overflow": BadRequest(422, ("seed", "less than or equal"), material, options({"seed": 2**64})),
+    "options-wild-rate": BadRequest(422, ("lr_features_phase2", "less than or equal"), material,
+                                    options({"lr_features_phase2": 1e30})),
     "options-twice": BadRequest(400, ("once",), material, {"options": ['{"preset": "fast"}', "{}"]}),
 }
 

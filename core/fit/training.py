@@ -211,8 +211,9 @@ def fit(material: TextureSet, options: ResolvedOptions, progress: Optional[Progr
     # Phase 2 also learns filtering (its continuous and jittered samples) and can end below its start at texel
     # centres, where the start is already close (Metal012 at 2k, 512²: 63.4 dB start, 60.0 after 2,000 steps;
     # docs/BENCHMARKS.md): the fit keeps whichever of the two scores better on the report's measure.
-    start_kept = options.phase2_iterations > 0 and centre_error(naive_model, reference) < centre_error(model,
-                                                                                                       reference)
+    # (A phase 2 that diverged scores NaN, and so loses too.)
+    start_kept = options.phase2_iterations > 0 and not centre_error(model, reference) <= centre_error(naive_model,
+                                                                                                      reference)
     if start_kept:
         model = copy.deepcopy(naive_model)
     phase2_s = time.perf_counter() - t0

@@ -433,9 +433,10 @@ def _sizes_and_times(report: Report) -> str:
              ["BC1 + BC5 with full mips, for comparison", f"{s.bc1_bc5_bytes:,}", _mib(s.bc1_bc5_bytes)]]
     sizes += [[f"baseline {_e(name)}", f"{b.size_bytes:,}", _mib(b.size_bytes)] for name, b in report.baselines.items()]
     size_table = _table(["what", "bytes", "MiB"], sizes)
-    times = [["phase 1 (unconstrained features)", _seconds(t.phase1_s)],
+    times = [["start and phase 1 (unconstrained features)", _seconds(t.phase1_s)],
              ["transition (block fit)", _seconds(t.transition_s)],
-             ["phase 2 (BC6H block features)", _seconds(t.phase2_s)],
+             ["phase 2 (BC6H block features)" + (", ended below its start: the export holds the start"
+                                                  if report.start_kept else ""), _seconds(t.phase2_s)],
              ["export", _seconds(t.export_s)], ["evaluation", _seconds(t.evaluation_s)],
              ["<b>total</b>", f"<b>{_seconds(t.total_s)}</b>"]]
     time_table = _table(["ours", "seconds"], times)

@@ -30,7 +30,9 @@ class ReportError(InputError):
 
 
 class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    # Scores are always finite (psnr_from_mse caps an exact match at MAX_PSNR_DB): a NaN or an infinity, as a
+    # number or a string, is a damaged report, and `bcf check` must never pass one.
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 class TextureScores(_Model):
@@ -116,6 +118,9 @@ class Report(_Model):
     size: SizeReport
     timing: TimingReport
     history: list[HistoryEntry]
+    # Phase 2 ended below its start at texel centres, so the export holds the start (the transition's blocks).
+    # Default: False, as reports written before the fit made this choice always hold phase 2's result.
+    start_kept: bool = False
     baselines: dict[str, BaselineReport] = {}  # `bcf compress --baselines`: name -> scores and size
 
 
@@ -169,8 +174,11 @@ def format_report(report: Report, title: Optional[str] = None) -> str:
     s, t = report.size, report.timing
     lines.append(f"size: {s.total_bytes / 2**20:.3f} MiB ({s.features_bytes:,} B features + {s.weights_bytes:,} B "
                  f"weights, {s.bits_per_texel:.2f} bits/texel); BC1+BC5 at this size: {s.bc1_bc5_bytes / 2**20:.3f} MiB")
-    lines.append(f"time: phase 1 {t.phase1_s:.1f} s, phase 2 {t.phase2_s:.1f} s, export {t.export_s:.1f} s, "
+    lines.append(f"time: start and phase 1 {t.phase1_s:.1f} s, transition {t.transition_s:.1f} s, phase 2 "
+                 f"{t.phase2_s:.1f} s, export {t.export_s:.1f} s, "
                  f"evaluation {t.evaluation_s:.1f} s, total {t.total_s:.1f} s on {report.device}")
+    if report.start_kept:
+        lines.append("phase 2 ended below its start at texel centres: the export holds the start")
     return "\n".join(lines)
 
 
