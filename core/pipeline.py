@@ -14,6 +14,7 @@ import hashlib
 import json
 import os
 import shutil
+import tempfile
 import time
 from pathlib import Path
 from typing import Callable, Mapping, Optional, Sequence
@@ -35,7 +36,7 @@ from bcf.core.report import metrics
 from bcf.core.report import report_json as report
 from bcf.core.version import GENERATOR
 
-__all__ = ["BASELINES_FOLDER", "OutputExistsError", "ResultIdentity", "check_output", "compress_material",
+__all__ = ["BASELINES_FOLDER", "OutputExistsError", "OutputNotWritableError", "ResultIdentity", "check_output", "compress_material",
            "is_current", "result_identity"]
 
 BASELINES_FOLDER = "baselines"  # OUT/baselines/<name>/: the baseline codecs' texture files
@@ -47,13 +48,23 @@ class OutputExistsError(InputError):
     """The output folder exists and is not empty (and overwriting was not asked for)."""
 
 
+class OutputNotWritableError(InputError):
+    """The output folder cannot be created or written where it was asked for."""
+
+
 def check_output(output: Path, overwrite: bool) -> None:
-    """Refuse early (before any training) to replace a non-empty folder unless `overwrite`."""
+    """Refuse early (before any training) to replace a non-empty folder unless `overwrite`, or to write where
+    the result could not be stored: the folder that will hold it is created and a probe folder made in it."""
     if output.exists() and not output.is_dir():
         raise OutputExistsError("exists and is not a folder", file=output)
     if output.is_dir() and any(output.iterdir()) and not overwrite:
         raise OutputExistsError("folder exists and is not empty", file=output, fix="use {} to replace it",
                                 options=["force"])
+    try:
+        output.parent.mkdir(parents=True, exist_ok=True)
+        os.rmdir(tempfile.mkdtemp(prefix=f".{output.name}.probe-", dir=output.parent))
+    except OSError as exc:
+        raise OutputNotWritableError(f"cannot write the output here ({exc.strerror or exc})", file=output) from None
 
 
 # --------------------------------------------------------------------------------------- is it current?

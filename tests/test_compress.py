@@ -533,6 +533,22 @@ def test_bad_input_is_a_user_error_and_writes_nothing(case: str, tmp_path: Path)
     assert_not_created(output)
 
 
+@pytest.mark.parametrize("where", ["inside a file", "in /proc"])
+def test_an_output_that_cannot_be_written_is_refused_before_training(where: str, sample_dir: Path,
+                                                                     tmp_path: Path) -> None:
+    """Refused at once, not after the training: with a million phase-2 iterations asked for, a check made after
+    the fit would run into the timeout. (/proc refuses new folders even to root, who may write anywhere else.)"""
+    if where == "inside a file":
+        (tmp_path / "notes.txt").write_text("a file\n")
+        output = tmp_path / "notes.txt" / "out"
+    else:
+        output = Path("/proc") / f"bcf-test-{tmp_path.name}" / "out"
+    result = run_bcf("compress", sample_dir, "-o", output, "--preset", "fast", "--phase2-iterations", "1000000",
+                     "-q", timeout=60)
+    assert_user_error(result, output, "cannot write the output here")
+    assert not output.exists()
+
+
 def test_existing_output_needs_force(sample_dir: Path, tmp_path: Path) -> None:
     output = tmp_path / "out"
     output.mkdir()
