@@ -152,9 +152,10 @@ def info(folder: Path, /) -> int:
     Args:
         folder: a folder written by 'bcf compress'
     """
-    from bcf.core import REPORT_FILE, format_report, read_manifest, read_report
+    from bcf.core import REPORT_FILE, format_report, read_manifest, read_report, verify_files
 
     m = read_manifest(folder)
+    checked = verify_files(folder, m)
     lines = [f"folder:    {folder}", f"format:    {m.format} v{m.format_version} ({m.generator})",
              f"material:  {m.material.name}, {m.width}x{m.height}, {m.mips} mips, {m.address} addressing, "
              f"normal {m.material.normal_convention}",
@@ -169,6 +170,7 @@ def info(folder: Path, /) -> int:
     lines.append(f"decoder:   {m.decoder.file}: MLP {shape} ({', '.join(x.activation for x in m.decoder.layers)}), "
                  f"{m.decoder.dtype}, {m.decoder.bytes} bytes")
     lines.append("outputs:   " + "; ".join(f"{o.name} = outputs {o.channels[0]}-{o.channels[-1]}" for o in m.outputs))
+    lines.append(f"files:     the {checked} files the manifest lists match their SHA-256")
     if (folder / REPORT_FILE).is_file():
         lines += ["", format_report(read_report(folder), "quality (report.json):")]
     else:

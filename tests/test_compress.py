@@ -630,6 +630,55 @@ def test_decode_refuses_a_modified_feature_file(chainmail: Compressed, tmp_path:
     assert not output.exists() or not any(output.iterdir())
 
 
+MANIFEST_EDITS: dict[str, tuple[Callable[[dict[str, Any]], None], tuple[str, ...]]] = {
+    "a 65536² material": (lambda m: m.update(width=65536, height=65536), ("width", "less than or equal to 16384")),
+    "a negative size": (lambda m: m["feature_textures"][0].update(width=-4), ("feature_textures.0.width",)),
+    "a file outside the folder": (lambda m: m["feature_textures"][0].update(file="/etc/hostname"),
+                                  ("'/etc/hostname' is not a file name inside the export folder",)),
+    "a file above the folder": (lambda m: m["decoder"].update(file="../decoder.bin"), ("decoder.file",)),
+    "no layers": (lambda m: m["decoder"].update(layers=[]), ("decoder.layers",)),
+    "a huge layer": (lambda m: m["decoder"]["layers"][0].update(inputs=10**9), ("decoder.layers.0.inputs",)),
+    "a layer of the wrong width": (lambda m: m["decoder"]["layers"][0].update(inputs=11), ("12-N-8",)),
+    "MLP inputs out of range": (lambda m: m["feature_textures"][0].update(mlp_inputs=[0, 1, 99]),
+                                ("mlp_inputs",)),
+    "a million mips": (lambda m: m.update(mips=10**6), ("mips",)),
+    "no feature textures": (lambda m: m.update(feature_textures=[]), ("feature_textures",)),
+    "a NaN LOD bias": (lambda m: m["feature_textures"][0].update(lod_bias=float("nan")), ("lod_bias",)),
+    "weights past the end of decoder.bin": (lambda m: m["decoder"]["layers"][1].update(weight_offset=10**6),
+                                            ("decoder.bin", "fp16 values")),
+}
+
+
+@pytest.mark.parametrize("command", ["decode", "info"])
+@pytest.mark.parametrize("case", list(MANIFEST_EDITS))
+def test_an_edited_manifest_is_one_error_line(case: str, command: str, chainmail: Compressed,
+                                             tmp_path: Path) -> None:
+    """A manifest edited by hand or by an attacker: exit 2 and one `bcf: error:` line naming the problem, before
+    any large allocation, and no file outside the folder read (issue 16, case 8)."""
+    folder = tmp_path / "copy"
+    shutil.copytree(chainmail.folder, folder)
+    edit, named = MANIFEST_EDITS[case]
+    manifest = json.loads((folder / export.MANIFEST_FILE).read_text())
+    edit(manifest)
+    (folder / export.MANIFEST_FILE).write_text(json.dumps(manifest))
+    output = tmp_path / "images"
+    result = run_bcf(command, folder, *(["-o", output] if command == "decode" else []), timeout=60)
+    if command == "info" and case == "weights past the end of decoder.bin":  # info reads no weights
+        assert result.returncode == 0, result.stderr
+        return
+    assert_user_error(result, *named)
+    assert not output.exists() or not any(output.iterdir())
+
+
+def test_info_checks_every_file_against_the_manifest(chainmail: Compressed, tmp_path: Path) -> None:
+    folder = tmp_path / "copy"
+    shutil.copytree(chainmail.folder, folder)
+    assert "the 5 files the manifest lists match their SHA-256" in run_bcf("info", folder).stdout
+    with (folder / export.DECODER_FILE).open("ab") as stream:
+        stream.write(b"\0")
+    assert_user_error(run_bcf("info", folder), "decoder.bin", "sha256")
+
+
 def test_decode_needs_a_manifest(chainmail: Compressed, tmp_path: Path) -> None:
     folder = tmp_path / "copy"
     shutil.copytree(chainmail.folder, folder)

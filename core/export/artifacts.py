@@ -11,19 +11,21 @@ from __future__ import annotations
 import hashlib
 import json
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from bcf.core.codec import containers
 from bcf.core.errors import InputError
-from bcf.core.fit.model import FEATURE_CHANNELS, BlockFeatures, Decoder, NeuralMaterial
+from bcf.core.files import file_sha256
+from bcf.core.fit.model import (FEATURE_CHANNELS, FEATURE_TEXTURES, OUTPUT_CHANNELS, BlockFeatures, Decoder,
+                                NeuralMaterial)
 from bcf.core.material.texture_set import MaterialSource
 from bcf.core.options import Address, ResolvedOptions
 from bcf.core.version import GENERATOR
 
 __all__ = ["DECODER_FILE", "MANIFEST_FILE", "ExportError", "Manifest", "feature_file", "read_manifest",
-           "sha256_hex", "write_export"]
+           "sha256_hex", "verify_files", "write_export"]
 
 FORMAT_NAME = "bcf-neural-material"
 FORMAT_VERSION = 1
@@ -39,43 +41,75 @@ class ExportError(InputError):
     """An export folder that is incomplete, inconsistent or corrupt; the message names the file."""
 
 
+# A manifest is read from a folder anyone may have edited: every size is bounded (D3D's largest texture side,
+# BC6H's mip count for it, the widest decoder bcf writes), so reading one never allocates more than such an
+# export needs, and every file is a plain name inside the folder.
+MAX_TEXTURE_SIDE = 16384
+MAX_MIPS = 15
+MAX_LAYER_WIDTH = 64
+MAX_MANIFEST_BYTES = 1 << 20  # bcf writes a few KiB
+
+
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+def _plain_file_name(name: str) -> str:
+    if not name or name in (".", "..") or Path(name).name != name or "\\" in name:
+        raise ValueError(f"{name!r} is not a file name inside the export folder")
+    return name
+
+
+FileName = Annotated[str, AfterValidator(_plain_file_name)]
+Side = Annotated[int, Field(ge=1, le=MAX_TEXTURE_SIDE)]
+Sha256 = Annotated[str, Field(pattern="^[0-9a-f]{64}$")]
 
 
 class FeatureTextureEntry(_Strict):
-    file: str
+    file: FileName
     format: Literal["BC6H_UF16"] = "BC6H_UF16"
     dxgi_format: Literal[95] = 95
-    width: int
-    height: int
-    mips: int
-    lod_bias: float  # b_i of eq. 11: log2(max(width / material width, height / material height))
+    width: Side
+    height: Side
+    mips: int = Field(ge=1, le=MAX_MIPS)
+    lod_bias: float = Field(ge=-MAX_MIPS, le=MAX_MIPS)  # b_i of eq. 11: log2(max(width / material width, ...))
     mlp_inputs: list[int]  # which MLP inputs the texture's R, G, B feed
-    bytes: int  # BC6H payload of all mips (GPU memory), without the DDS header
-    sha256: str
+    bytes: int = Field(ge=0)  # BC6H payload of all mips (GPU memory), without the DDS header
+    sha256: Sha256
 
 
 class LayerEntry(_Strict):
-    inputs: int
-    outputs: int
+    inputs: int = Field(ge=1, le=MAX_LAYER_WIDTH)
+    outputs: int = Field(ge=1, le=MAX_LAYER_WIDTH)
     activation: Literal["relu", "identity"]
-    weight_offset: int  # in fp16 elements from the start of decoder.bin; outputs x inputs, row-major
-    bias_offset: int  # in fp16 elements; `outputs` values
+    weight_offset: int = Field(ge=0)  # in fp16 elements from the start of decoder.bin; outputs x inputs, row-major
+    bias_offset: int = Field(ge=0)  # in fp16 elements; `outputs` values
 
 
 class DecoderEntry(_Strict):
-    file: str = DECODER_FILE
+    file: FileName = DECODER_FILE
     dtype: Literal["float16"] = "float16"
     byte_order: Literal["little"] = "little"
-    layers: list[LayerEntry]
-    bytes: int
-    sha256: str
+    layers: list[LayerEntry] = Field(min_length=2, max_length=2)
+    bytes: int = Field(ge=0)
+    sha256: Sha256
+
+    @model_validator(mode="after")
+    def _the_reference_mlp(self) -> "DecoderEntry":
+        """Two layers, relu then identity, from the 12 features to the 8 material channels (docs/FORMAT.md)."""
+        first, second = self.layers
+        if (first.activation, second.activation) != ("relu", "identity"):
+            raise ValueError("expected two layers, relu then identity")
+        if (first.inputs, first.outputs, second.outputs) != (FEATURE_TEXTURES * FEATURE_CHANNELS, second.inputs,
+                                                             OUTPUT_CHANNELS):
+            raise ValueError(f"expected layers {FEATURE_TEXTURES * FEATURE_CHANNELS}-N-{OUTPUT_CHANNELS}, found "
+                             f"{first.inputs}-{first.outputs}-{second.inputs}-{second.outputs}")
+        return self
 
 
 class OutputEntry(_Strict):
     name: Literal["albedo", "normal", "arm"]
-    channels: list[int]  # MLP outputs, in order
+    channels: list[Annotated[int, Field(ge=0, lt=OUTPUT_CHANNELS)]] = Field(min_length=1, max_length=3)  # in order
     meaning: str
 
 
@@ -84,14 +118,28 @@ class Manifest(_Strict):
     format_version: Literal[1] = FORMAT_VERSION
     generator: str
     material: MaterialSource
-    width: int  # of the source material
-    height: int
-    mips: int  # material mip levels the model was trained on: scales s in [0, mips - 1]
+    width: Side  # of the source material
+    height: Side
+    mips: int = Field(ge=1, le=MAX_MIPS)  # material mip levels the model was trained on: scales s in [0, mips - 1]
     address: Address
-    feature_textures: list[FeatureTextureEntry]
+    feature_textures: list[FeatureTextureEntry] = Field(min_length=FEATURE_TEXTURES, max_length=FEATURE_TEXTURES)
     decoder: DecoderEntry
-    outputs: list[OutputEntry]
+    outputs: list[OutputEntry] = Field(min_length=3, max_length=3)
     options: ResolvedOptions
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "Manifest":
+        """Texture i feeds MLP inputs 3i..3i+2 (the reference decoder concatenates in texture order), and no
+        texture or material has more mips than its size allows."""
+        for i, texture in enumerate(self.feature_textures):
+            if texture.mlp_inputs != list(range(FEATURE_CHANNELS * i, FEATURE_CHANNELS * (i + 1))):
+                raise ValueError(f"feature_textures.{i}.mlp_inputs: expected {FEATURE_CHANNELS * i}.."
+                                 f"{FEATURE_CHANNELS * (i + 1) - 1}, found {texture.mlp_inputs}")
+            if texture.mips > max(texture.width, texture.height).bit_length():
+                raise ValueError(f"feature_textures.{i}: {texture.mips} mips for {texture.width}x{texture.height}")
+        if self.mips > max(self.width, self.height).bit_length():
+            raise ValueError(f"{self.mips} mips for a {self.width}x{self.height} material")
+        return self
 
 
 def sha256_hex(data: bytes) -> str:
@@ -150,6 +198,20 @@ def write_export(directory: Path, model: NeuralMaterial, source: MaterialSource,
     return manifest
 
 
+def verify_files(directory: Path, manifest: Manifest) -> int:
+    """Check every file the manifest lists against its size and SHA-256; ExportError naming the first that does
+    not match. Returns how many files were checked."""
+    entries = [(t.file, t.sha256) for t in manifest.feature_textures] + [(manifest.decoder.file,
+                                                                          manifest.decoder.sha256)]
+    for name, sha256 in entries:
+        path = Path(directory) / name
+        if not path.is_file():
+            raise ExportError("missing", file=path)
+        if file_sha256(path) != sha256:
+            raise ExportError("contents do not match the manifest's sha256 (modified or corrupt)", file=path)
+    return len(entries)
+
+
 def read_manifest(directory: Path) -> Manifest:
     """manifest.json of an export folder; ExportError for a folder that is not one."""
     path = Path(directory) / MANIFEST_FILE
@@ -157,11 +219,14 @@ def read_manifest(directory: Path) -> Manifest:
         raise ExportError("not a directory", file=directory)
     if not path.is_file():
         raise ExportError(f"missing; is {directory} a 'bcf compress' output folder?", file=path)
+    if path.stat().st_size > MAX_MANIFEST_BYTES:
+        raise ExportError(f"{path.stat().st_size:,} bytes, more than any bcf manifest ({MAX_MANIFEST_BYTES:,} at "
+                          "most)", file=path)
     try:
         return Manifest.model_validate(json.loads(path.read_text()))
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise ExportError(f"not valid JSON: {exc}", file=path) from None
     except ValidationError as exc:
         first = exc.errors()[0]
-        where = ".".join(str(p) for p in first["loc"])
+        where = ".".join(str(p) for p in first["loc"]) or "(top level)"
         raise ExportError(f"not a bcf manifest ({where}: {first['msg']})", file=path) from None
