@@ -38,6 +38,7 @@ __all__ = ["JobList", "create_app", "gated"]
 # Paths anyone may read: liveness and the API description.
 OPEN_PATHS = frozenset({"/healthz", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json"})
 UNAUTHORISED = "missing or wrong bearer token (Authorization: Bearer <one of BCF_API_TOKENS>)"
+MAX_LIST_OFFSET = 2**62  # the job store is SQLite: OFFSET is a signed 64-bit integer
 
 
 class _BodyTooLarge(Exception):
@@ -199,7 +200,7 @@ async def submit(upload: Annotated[Upload, Depends(read_upload)], queue: QueueDe
 @routes.get("/v1/jobs", tags=["jobs"])
 def list_jobs(queue: QueueDep,
               state: Annotated[Optional[list[JobState]], Query(description="repeat to give several")] = None,
-              offset: Annotated[int, Query(ge=0)] = 0,
+              offset: Annotated[int, Query(ge=0, le=MAX_LIST_OFFSET)] = 0,
               limit: Annotated[int, Query(ge=1, le=1000)] = 100) -> JobList:
     """Jobs, newest first."""
     jobs, total = queue.store.list(set(state) if state else None, offset, limit)

@@ -268,6 +268,12 @@ def test_unknown_job_is_404(service: Service, method: str, suffix: str) -> None:
     assert_nothing_written(service)
 
 
+@pytest.mark.parametrize("query", ["offset=9223372036854775808", "offset=-1", "limit=0", "limit=1001"])
+def test_job_list_paging_out_of_range_is_422(service: Service, query: str) -> None:
+    """Beyond SQLite's 64-bit integers the store used to fail with a 500 (schemathesis, issue 16 case 9)."""
+    assert_error(service.server.client.get(f"/v1/jobs?{query}"), 422, query.split("=")[0])
+
+
 # ------------------------------------------------------------------------------------- a valid submission
 
 
