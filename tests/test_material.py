@@ -488,6 +488,28 @@ def test_float_values_are_clipped_with_a_count(tmp_path: Path) -> None:
     assert [(f.format, f.bits) for f in texture_set.source.files if f.role == "roughness"] == [("openexr", "float")]
 
 
+@pytest.mark.parametrize("convention, flagged", [("directx", False), ("opengl", True)])
+def test_a_normal_map_read_with_the_wrong_convention_gets_a_note(convention: str, flagged: bool) -> None:
+    """Chainmail004's map is DirectX: read as OpenGL its slopes are far from a height map's, and the user is told
+    (its name says DirectX, so the explicit convention is what a user who got it wrong would pass)."""
+    texture_set = load_material(CHAINMAIL, MaterialFiles(normal_convention=convention))
+    notes = [n for n in texture_set.notes if "looks like DirectX (Y-)" in n]
+    assert len(notes) == int(flagged), texture_set.notes
+    if flagged:
+        assert notes[0].startswith("Chainmail004_1K_Normal.png:") and "set the normal convention to directx" in notes[0]
+
+
+def test_a_correctly_labelled_normal_map_gets_no_convention_note() -> None:
+    assert not [n for n in load_material(SAMPLE).notes if "looks like" in n]
+
+
+def test_an_exr_albedo_is_noted_as_linear(tmp_path: Path) -> None:
+    make_set(tmp_path, albedo=None)
+    write_image(tmp_path / "albedo.exr", noise(64, 64, 3, seed=7))
+    notes = load_material(tmp_path).notes
+    assert any(n.startswith("albedo.exr: albedo in OpenEXR, which is linear by convention") for n in notes), notes
+
+
 # ------------------------------------------------------------------------------------------- images.py
 
 
