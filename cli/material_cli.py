@@ -88,7 +88,7 @@ def compress(material_dir: Optional[Path] = None, /, *, output: Output,
              files: Annotated[MaterialFiles, model_flags(*ROLES, group=FILES)] = MaterialFiles(),
              options: Annotated[JobOptions, model_flags(*TRAINING_FIELDS, group=TRAINING)] = JobOptions(),
              baselines: Annotated[Optional[list[str]], Parameter(consume_multiple=(0, 1))] = None,
-             force: bool = False, quiet: Quiet = False) -> int:
+             max_pixels: Optional[PositiveInt] = None, force: bool = False, quiet: Quiet = False) -> int:
     """Compress a PBR material (albedo, normal, ARM) into BC6H neural features + decoder weights.
 
     Roles given explicitly override those found in MATERIAL_DIR. Missing AO is 1, missing metalness 0.
@@ -99,6 +99,8 @@ def compress(material_dir: Optional[Path] = None, /, *, output: Output,
         baselines: also encode and score conventional codecs into report.json/report.html and OUT/baselines/:
             all (the default when no LIST is given), or a comma-separated list of bc, astc, naive and names
             such as bc1_bc5_full, astc_12x12_half, naive_bc6
+        max_pixels: largest texture accepted, width x height, checked from the file headers before any pixel
+            is decoded (default: 67108864, 8192x8192)
         force: replace OUT if it exists and is not empty
     """
     from bcf.core import check_output, compress_material, format_report, load_material, resolve_options
@@ -109,7 +111,8 @@ def compress(material_dir: Optional[Path] = None, /, *, output: Output,
     job = JobOptions(**options.model_dump(exclude={"baselines"}),
                      baselines=[] if baselines is None else [",".join(baselines) or "all"])
     check_output(output, force)
-    texture_set = load_material(material_dir, files.model_copy(update={"normal_convention": job.normal_convention}))
+    texture_set = load_material(material_dir, files.model_copy(update={"normal_convention": job.normal_convention}),
+                                **({} if max_pixels is None else {"max_pixels": max_pixels}))
     for line in _describe(texture_set):
         say(line)
     resolved = resolve_options(job.compress_options())

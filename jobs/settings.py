@@ -12,6 +12,8 @@ from typing import Annotated, Optional
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
+from bcf.core import MAX_TEXTURE_PIXELS
+
 __all__ = ["Settings"]
 
 
@@ -29,6 +31,10 @@ class Settings(BaseSettings):
     max_upload_mb: float = Field(512.0, gt=0, description="largest accepted request body, in MiB")
     max_unzipped_mb: float = Field(2048.0, gt=0, description="largest total size of a material zip's entries")
     max_zip_entries: int = Field(64, ge=1, description="most entries a material zip may have")
+    max_texture_pixels: int = Field(
+        MAX_TEXTURE_PIXELS, ge=64 * 64, le=16384 * 16384,
+        description="largest texture accepted, width x height, checked from each image's header before any pixel "
+                    "is decoded (the default allows 8K textures)")
     max_attempts: int = Field(3, ge=1, description="runs of a job before a worker death marks it failed")
     heartbeat_s: float = Field(2.0, gt=0, description="how often a running job's record is refreshed")
     stale_after_s: float = Field(30.0, gt=0, description="a running job whose record is this old has lost "

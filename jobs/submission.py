@@ -62,7 +62,8 @@ def submit_material(queue: JobQueue, material: StagedMaterial, options: JobOptio
     resolved = resolve_material(material.folder, MaterialFiles(**material.files,
                                                                normal_convention=options.normal_convention))
     files = resolved.roles()
-    job = _new_job(material, files, load_texture_set(resolved, name=material.name), options)
+    texture_set = load_texture_set(resolved, name=material.name, max_pixels=queue.settings.max_texture_pixels)
+    job = _new_job(material, files, texture_set, options)
     folder = queue.inputs_path(job.id)
     try:  # inputs in place before the job is queued: a worker may start it at once
         for stored in job.inputs:

@@ -39,6 +39,7 @@ from bcf.core.options import CompressOptions, resolve_options
 from bcf.core.report.report_json import Report, read_report
 from bcf.core.fit.sampling import ReferenceMaterial, material_mip_count
 from bcf_command import BCF, ONE_THREAD_ENV, default_sigint, run_bcf
+from crafted_images import png_claiming
 from reference_decoders import MesaBC6HDecoder, decode_with_mesa, decode_with_oiio
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -506,6 +507,17 @@ def _case_arm_and_roughness(tmp: Path) -> tuple[list[object], list[object]]:
     return args, [folder / "arm.png", "--arm cannot be combined with --roughness"]
 
 
+def _case_pixel_bomb(tmp: Path) -> tuple[list[object], list[object]]:
+    folder = write_sample_set(tmp / "mat")
+    (folder / "albedo.png").write_bytes(png_claiming(16384, 16384))  # 32 KiB claiming 768 MiB of pixels
+    return [folder], [folder / "albedo.png", "16384x16384 is 268,435,456 pixels", "limit of 67,108,864"]
+
+
+def _case_over_max_pixels(tmp: Path) -> tuple[list[object], list[object]]:
+    folder = write_sample_set(tmp / "mat")
+    return [folder, "--max-pixels", "4096"], [folder / "albedo.png", "128x128 is 16,384 pixels", "limit of 4,096"]
+
+
 def _case_no_such_folder(tmp: Path) -> tuple[list[object], list[object]]:
     return [tmp / "nope"], [tmp / "nope", "no such folder"]
 
@@ -521,6 +533,8 @@ BAD_INPUTS: dict[str, Callable[[Path], tuple[list[object], list[object]]]] = {
     "1-channel albedo": _case_grey_albedo,
     "--arm with --roughness": _case_arm_and_roughness,
     "nonexistent folder": _case_no_such_folder,
+    "decompression bomb": _case_pixel_bomb,
+    "over --max-pixels": _case_over_max_pixels,
 }
 
 

@@ -17,6 +17,7 @@ from typing import Any, Callable, Iterator
 import httpx
 import pytest
 
+from crafted_images import png_claiming
 from service_harness import BcfEnvironment, Server, material_zip, tiny_material
 
 TOKEN = "secret"
@@ -186,6 +187,8 @@ def _mismatched() -> Files:
 BAD_UPLOADS: dict[str, BadRequest] = {
     "over-upload-limit": BadRequest(413, ("larger than the limit", "1 MiB"),
                                     _replace("albedo", ("albedo.png", os.urandom(2 << 20), "image/png"))),
+    "pixel-bomb": BadRequest(422, ("albedo", "16384x16384 is 268,435,456 pixels", "limit of 67,108,864"),
+                             _replace("albedo", ("albedo.png", png_claiming(16384, 16384), "image/png"))),
     "text-as-png": BadRequest(415, ("albedo", "albedo.png", "not a PNG"),
                               _replace("albedo", ("albedo.png", b"just some text, not pixels\n" * 8, "image/png"))),
     "zip-not-a-zip": BadRequest(415, ("material", "not a zip"),

@@ -114,6 +114,15 @@ def _check_channels(role: Role, path: Path, channels: int) -> None:
                             role=role)
 
 
+def _check_pixels(path: Path, header: _Header, max_pixels: int) -> None:
+    """MaterialError for an image larger than `max_pixels`, from its header: a small file may claim a huge
+    size (a decompression bomb), so this comes before any pixel is decoded."""
+    pixels = header.width * header.height
+    if pixels > max_pixels:
+        raise MaterialError(f"{header.width}x{header.height} is {pixels:,} pixels, more than the limit of "
+                            f"{max_pixels:,}", file=path)
+
+
 def _check_sizes(headers: dict[Role, tuple[Path, _Header]]) -> tuple[int, int]:
     """The common (width, height) of all files; MaterialError if they differ or it is not usable."""
     sizes = {(h.width, h.height) for _, h in headers.values()}
@@ -182,6 +191,10 @@ def _clip(path: Path, values: np.ndarray, notes: list[str]) -> np.ndarray:
     return values
 
 
+# Largest texture loaded unless the caller allows more: 8K, whose fit fits a 24 GB machine (the material's 8
+# channels in float32 are 2 GiB, its reference mips and the fit's buffers a few times that). A small file may
+# claim far more (a decompression bomb); `bcf compress --max-pixels` and BCF_MAX_TEXTURE_PIXELS change it.
+MAX_TEXTURE_PIXELS = 8192 * 8192
 # Image formats whose colour values are linear by convention (an albedo in them is not sRGB-encoded).
 LINEAR_FORMATS = {"openexr": "OpenEXR", "hdr": "Radiance HDR", "pfm": "PFM"}  # OpenImageIO's name: ours
 # The stated normal convention is doubted when the field it implies is at least this many times further from
@@ -217,12 +230,14 @@ def _flipped_convention_note(path: Path, xy: np.ndarray, convention: str) -> str
             f"further from the slopes of a height map; set the normal convention to {given} if so")
 
 
-def load_texture_set(files: MaterialFiles, name: str | None = None) -> TextureSet:
+def load_texture_set(files: MaterialFiles, name: str | None = None,
+                     max_pixels: int = MAX_TEXTURE_PIXELS) -> TextureSet:
     """Read and validate the files of `files` into a TextureSet.
 
     `name` defaults to the albedo file's stem. Checks, in order (all before decoding any pixels except the
-    last two): completeness, readable headers, channel counts per role, equal sizes, power-of-two sizes
-    >= 64, then decodes (truncated or corrupt data is an error) and clips values outside [0, 1] with a note.
+    last two): completeness, readable headers, channel counts per role, at most `max_pixels` per file, equal
+    sizes, power-of-two sizes >= 64, then decodes (truncated or corrupt data is an error) and clips values
+    outside [0, 1] with a note.
     Missing AO becomes 1 and missing metalness 0 (recorded in `source.defaults`, with a note).
     """
     check_complete(files, None)
@@ -231,6 +246,7 @@ def load_texture_set(files: MaterialFiles, name: str | None = None) -> TextureSe
     for role, path in roles.items():
         header = read_header(Path(path))
         _check_channels(role, Path(path), header.channels)
+        _check_pixels(Path(path), header, max_pixels)
         headers[role] = (Path(path), header)
     width, height = _check_sizes(headers)
 
@@ -278,9 +294,11 @@ def load_texture_set(files: MaterialFiles, name: str | None = None) -> TextureSe
     return TextureSet(channels=channels, source=source, notes=tuple(notes))
 
 
-def load_material(directory: Path | None, explicit: MaterialFiles | None = None) -> TextureSet:
+def load_material(directory: Path | None, explicit: MaterialFiles | None = None,
+                  max_pixels: int = MAX_TEXTURE_PIXELS) -> TextureSet:
     """`resolve_material` then `load_texture_set`; the material is named after `directory` when given."""
     files = resolve_material(None if directory is None else Path(directory), explicit or MaterialFiles())
-    return load_texture_set(files, name=None if directory is None else Path(directory).resolve().name)
+    return load_texture_set(files, name=None if directory is None else Path(directory).resolve().name,
+                            max_pixels=max_pixels)
 
 
