@@ -9,7 +9,6 @@ import ipaddress
 import logging
 import os
 import signal
-import subprocess
 import sys
 from typing import Annotated, Optional
 
@@ -61,6 +60,7 @@ def serve(*, host: str = "127.0.0.1", port: PositiveInt = 8000, workers: Optiona
     import uvicorn
 
     from bcf.core import require_device
+    from bcf.jobs.supervisor import WorkerSupervisor
     from bcf.service.app import create_app, gated
 
     settings = _settings()
@@ -71,10 +71,11 @@ def serve(*, host: str = "127.0.0.1", port: PositiveInt = 8000, workers: Optiona
     require_device(options.device)
     count = workers if workers is not None else (0 if settings.farm_mode else 1)
     settings.data_dir.mkdir(parents=True, exist_ok=True)
-    app = gated(create_app(settings), settings)
     env = {**os.environ, "BCF_DATA_DIR": str(settings.data_dir)}
-    processes = [subprocess.Popen([sys.executable, "-m", "bcf", "worker", "--device", options.device], env=env)
-                 for _ in range(count)]
+    supervisor = WorkerSupervisor([sys.executable, "-m", "bcf", "worker", "--device", options.device,
+                                   "--exit-with-parent", str(os.getpid())], env, count)
+    app = gated(create_app(settings, supervisor.status if count else None), settings)
+    supervisor.start()
     mode = f"farm mode, queue {settings.queue_url}" if settings.farm_mode else "embedded mode"
     print(f"bcf serve: {mode}, data in {settings.data_dir}, {count} worker process(es), "
           f"API on http://{host}:{port} (docs at /docs)", file=sys.stderr, flush=True)
@@ -87,13 +88,7 @@ def serve(*, host: str = "127.0.0.1", port: PositiveInt = 8000, workers: Optiona
     except _StopServing:
         pass
     finally:
-        for process in processes:
-            process.send_signal(signal.SIGTERM)  # running jobs go back to the queue
-        for process in processes:
-            try:
-                process.wait(timeout=60)
-            except subprocess.TimeoutExpired:
-                process.kill()
+        supervisor.stop(timeout=60)  # SIGTERM: running jobs go back to the queue
     return 0
 
 
@@ -105,7 +100,8 @@ def _stop_serving(signum: int, frame: object) -> None:
     raise _StopServing()
 
 
-def worker(*, options: Device = CompressOptions(), concurrency: PositiveInt = 1) -> int:
+def worker(*, options: Device = CompressOptions(), concurrency: PositiveInt = 1,
+           exit_with_parent: Optional[PositiveInt] = None) -> int:
     """Run compression jobs from the queue (embedded SQLite queue, or Redis with BCF_QUEUE_URL).
 
     {SETTINGS} SIGTERM or Ctrl-C puts running jobs back in the queue.
@@ -113,7 +109,13 @@ def worker(*, options: Device = CompressOptions(), concurrency: PositiveInt = 1)
     Args:
         options.device: torch device for training
         concurrency: jobs run at the same time (default: 1, one per GPU)
+        exit_with_parent: end (as on SIGTERM) when the process that started this one ends; 'bcf serve' passes
+            its PID
     """
+    if exit_with_parent is not None:
+        from bcf.jobs.supervisor import exit_with_parent as arrange_exit
+
+        arrange_exit(exit_with_parent)
     from bcf.core import require_device
     from bcf.jobs.worker import Worker
 

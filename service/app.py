@@ -10,8 +10,9 @@ from __future__ import annotations
 
 import json
 import secrets
+import shutil
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated, Callable, Literal, Optional
 
 from fastapi import APIRouter, Depends, FastAPI, HTTPException, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
@@ -27,6 +28,7 @@ from bcf.jobs.queue import JobQueue
 from bcf.jobs.records import FINAL_STATES, Job, JobState, JobView
 from bcf.jobs.settings import Settings
 from bcf.jobs.store import StoreUnavailable
+from bcf.jobs.supervisor import WorkerStatus
 from bcf.service.metrics import prometheus_text
 from bcf.service.uploads import Upload, read_upload, submit_upload
 
@@ -35,8 +37,8 @@ __all__ = ["JobList", "create_app", "gated"]
 
 # ---------------------------------------------------------------------------------------------- the gate
 
-# Paths anyone may read: liveness and the API description.
-OPEN_PATHS = frozenset({"/healthz", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json"})
+# Paths anyone may read: liveness, readiness and the API description.
+OPEN_PATHS = frozenset({"/healthz", "/readyz", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json"})
 UNAUTHORISED = "missing or wrong bearer token (Authorization: Bearer <one of BCF_API_TOKENS>)"
 MAX_LIST_OFFSET = 2**62  # the job store is SQLite: OFFSET is a signed 64-bit integer
 
@@ -121,8 +123,15 @@ def get_queue(request: Request) -> JobQueue:
     return request.app.state.queue
 
 
+def get_workers(request: Request) -> Optional[WorkerStatus]:
+    """The supervised workers' status, or None where `bcf serve` starts none (farm mode: `bcf worker`s)."""
+    status = request.app.state.workers
+    return None if status is None else status()
+
+
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 QueueDep = Annotated[JobQueue, Depends(get_queue)]
+WorkersDep = Annotated[Optional[WorkerStatus], Depends(get_workers)]
 _bearer = HTTPBearer(auto_error=False, description="one of BCF_API_TOKENS")
 
 
@@ -177,10 +186,34 @@ def healthz(settings: SettingsDep, queue: QueueDep) -> dict[str, str]:
     return {"status": "ok", "version": __version__, "mode": "farm" if settings.farm_mode else "embedded"}
 
 
+class Readiness(BaseModel):
+    ready: bool
+    store: Literal["ok", "unavailable"]
+    disk_free_bytes: int  # on the data folder's file system
+    workers: Optional[WorkerStatus]  # None where this server starts no workers (farm mode)
+
+
+@open_routes.get("/readyz", tags=["service"], response_model=Readiness,
+                 responses={503: {"model": Readiness, "description": "not ready: the job store does not answer, "
+                                                                      "or none of this server's workers runs"}})
+def readyz(settings: SettingsDep, queue: QueueDep, workers: WorkersDep, response: Response) -> Readiness:
+    """Readiness for an orchestrator (no token needed): the job store answers and, where this server supervises
+    workers, at least one runs. 503 otherwise, with the same body."""
+    try:
+        queue.store.ping()
+        store: Literal["ok", "unavailable"] = "ok"
+    except StoreUnavailable:
+        store = "unavailable"
+    free = shutil.disk_usage(settings.data_dir).free if settings.data_dir.exists() else 0
+    ready = store == "ok" and (workers is None or workers.live > 0)
+    response.status_code = 200 if ready else 503
+    return Readiness(ready=ready, store=store, disk_free_bytes=free, workers=workers)
+
+
 @routes.get("/metrics", tags=["service"], response_class=PlainTextResponse)
-def metrics(queue: QueueDep) -> PlainTextResponse:
-    """Prometheus text format: jobs by state, queue depth, job durations."""
-    return PlainTextResponse(prometheus_text(queue), media_type="text/plain; version=0.0.4")
+def metrics(queue: QueueDep, workers: WorkersDep) -> PlainTextResponse:
+    """Prometheus text format: jobs by state, queue depth, job durations, supervised workers and restarts."""
+    return PlainTextResponse(prometheus_text(queue, workers), media_type="text/plain; version=0.0.4")
 
 
 @routes.post("/v1/jobs", tags=["jobs"], status_code=202, response_model=JobView,
@@ -261,12 +294,13 @@ async def _invalid(request: Request, exc: RequestValidationError) -> JSONRespons
     return JSONResponse({"detail": problems}, status_code=422)
 
 
-def create_app(settings: Settings) -> FastAPI:
-    """The API over the job queue `settings` describe; both live in `app.state`, for the dependencies."""
+def create_app(settings: Settings, workers: Optional[Callable[[], WorkerStatus]] = None) -> FastAPI:
+    """The API over the job queue `settings` describe; both live in `app.state`, for the dependencies, with
+    `workers`, the status of the workers `bcf serve` supervises (None: it runs none)."""
     app = FastAPI(title="bcf", version=__version__,
                   description="Neural block-compressed features (BC6H) for PBR materials: submit a texture set, "
                               "get BC6H feature textures, MLP weights and a quality report.")
-    app.state.settings, app.state.queue = settings, JobQueue(settings)
+    app.state.settings, app.state.queue, app.state.workers = settings, JobQueue(settings), workers
     app.add_exception_handler(StoreUnavailable, _store_down)  # type: ignore[arg-type]
     app.add_exception_handler(RequestValidationError, _invalid)  # type: ignore[arg-type]
     app.include_router(open_routes)

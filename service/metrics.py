@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+from typing import Optional
+
 from bcf.jobs.queue import JobQueue
 from bcf.jobs.records import FINAL_STATES, JOB_STATES
+from bcf.jobs.supervisor import WorkerStatus
 
 __all__ = ["DURATION_BUCKETS_S", "prometheus_text"]
 
@@ -11,7 +14,7 @@ __all__ = ["DURATION_BUCKETS_S", "prometheus_text"]
 DURATION_BUCKETS_S = (1, 5, 15, 60, 300, 900, 3600, 4 * 3600, 12 * 3600)
 
 
-def prometheus_text(queue: JobQueue) -> str:
+def prometheus_text(queue: JobQueue, workers: Optional[WorkerStatus] = None) -> str:
     jobs, _ = queue.store.list()  # the finished ones are most of them, and their durations are needed anyway
     lines = ["# HELP bcf_jobs Jobs in the store by state.", "# TYPE bcf_jobs gauge"]
     lines += [f'bcf_jobs{{state="{state}"}} {sum(job.state == state for job in jobs)}' for state in JOB_STATES]
@@ -27,4 +30,10 @@ def prometheus_text(queue: JobQueue) -> str:
         lines.append(f'bcf_job_duration_seconds_bucket{{state="{state}",le="+Inf"}} {len(durations)}')
         lines.append(f'bcf_job_duration_seconds_sum{{state="{state}"}} {sum(durations):.3f}')
         lines.append(f'bcf_job_duration_seconds_count{{state="{state}"}} {len(durations)}')
+    if workers is not None:  # the workers `bcf serve` supervises
+        lines += ["# HELP bcf_workers Worker processes this server keeps, and of them running now.",
+                  "# TYPE bcf_workers gauge", f'bcf_workers{{state="wanted"}} {workers.wanted}',
+                  f'bcf_workers{{state="live"}} {workers.live}',
+                  "# HELP bcf_worker_restarts_total Workers started to replace dead ones.",
+                  "# TYPE bcf_worker_restarts_total counter", f"bcf_worker_restarts_total {workers.restarts}"]
     return "\n".join(lines) + "\n"

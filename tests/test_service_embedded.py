@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import signal
 import zipfile
 from pathlib import Path
@@ -18,7 +19,7 @@ from bcf.core.codec import bc6h
 from bcf.core.codec import containers
 from bcf_command import run_bcf
 from reference_decoders import decode_with_oiio
-from service_harness import TINY_OPTIONS, BcfEnvironment, tiny_material
+from service_harness import TINY_OPTIONS, BcfEnvironment, tiny_material, wait_until
 
 # Long enough to be caught running; stopped by cancel or by a killed worker (never run to the end).
 ENDLESS_OPTIONS = {"preset": "fast", "phase1_iterations": 1_000_000, "phase2_iterations": 10, "batch_size": 1024}
@@ -178,3 +179,49 @@ def test_a_stopped_worker_puts_its_job_back_at_once(stop_signal: int, tmp_path: 
         assert server.client.delete(f"/v1/jobs/{job['id']}").json()["state"] == "cancelled"
     finally:
         server.stop()
+
+
+def _children(pid: int) -> list[int]:
+    """Running processes whose parent is `pid`, from /proc."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            state, parent = stat.read_text().rsplit(")", 1)[1].split()[:2]
+        except (OSError, IndexError, ValueError):
+            continue  # ended while listed
+        if int(parent) == pid and state != "Z":
+            found.append(int(stat.parent.name))
+    return found
+
+
+def _ended(pid: int) -> bool:
+    """Gone, or a zombie nobody reaped (a container's PID 1 may not)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
+    except OSError:
+        return True
+
+
+def test_a_killed_worker_is_replaced_and_workers_end_with_their_server(tmp_path: Path) -> None:
+    """kill -9 of the worker `bcf serve` started: reaped, replaced (readiness and /metrics count it), and the
+    replacement takes jobs; kill -9 of `bcf serve` then ends its worker too (issue 16, case 2)."""
+    environment = BcfEnvironment(tmp_path, heartbeat_s=0.5)
+    server = environment.serve(workers=1)
+    try:
+        readiness = server.client.get("/readyz")
+        assert readiness.status_code == 200, readiness.text
+        assert readiness.json()["store"] == "ok" and readiness.json()["disk_free_bytes"] > 0
+        wait_until(lambda: len(_children(server.popen.pid)) == 1, 30, "the worker to start", logs=(server.log,))
+        [first] = _children(server.popen.pid)
+        os.kill(first, signal.SIGKILL)
+        wait_until(lambda: server.client.get("/readyz").json()["workers"] == {"wanted": 1, "live": 1, "restarts": 1},
+                   30, "a replacement worker", logs=(server.log,))
+        [second] = _children(server.popen.pid)
+        assert second != first and _ended(first)
+        assert f"worker pid {first} exited with code -9" in server.log.read_text()
+        assert "bcf_worker_restarts_total 1" in server.client.get("/metrics").text
+        job = submit(server, tiny_material(7), TINY_OPTIONS).json()
+        assert server.wait_finished(job["id"], timeout=120, logs=(server.log,))["state"] == "succeeded"
+    finally:
+        server.stop(signal.SIGKILL)
+    wait_until(lambda: _ended(second), 30, "the worker to end with its server", logs=(server.log,))
