@@ -12,7 +12,7 @@ import json
 import secrets
 import shutil
 from pathlib import Path
-from typing import Annotated, Callable, Literal, Optional
+from typing import Annotated, Any, Callable, Literal, Optional
 
 from fastapi import APIRouter, Depends, FastAPI, HTTPException, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
@@ -175,8 +175,31 @@ class JobList(BaseModel):
     limit: int
 
 
-open_routes = APIRouter()
-routes = APIRouter(dependencies=[Depends(authorised)])
+class ErrorBody(BaseModel):
+    """Every error the service sends: one message a build engineer can act on."""
+
+    detail: str
+
+
+_ERRORS = {400: "a malformed form: an unknown or repeated field, both a zip and role files, a zip entry that "
+                "escapes the archive",
+           401: "missing or wrong bearer token",
+           404: "no such job, or no such artifact of the job",
+           409: "the job is not in a state that allows this (results before it succeeded, cancelling a finished "
+                "job)",
+           413: "upload over BCF_MAX_UPLOAD_MB, or a material zip over BCF_MAX_UNZIPPED_MB",
+           415: "a file is not an accepted image, or the material not a zip",
+           422: "a parameter, the options or the material cannot be used",
+           503: "the job store does not answer; retry after Retry-After seconds"}
+
+
+def _errors(*codes: int) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI `responses` for error codes, each with the one error body."""
+    return {code: {"model": ErrorBody, "description": _ERRORS[code]} for code in codes}
+
+
+open_routes = APIRouter(responses=_errors(503))
+routes = APIRouter(dependencies=[Depends(authorised)], responses=_errors(401, 503))
 
 
 @open_routes.get("/healthz", tags=["service"])
@@ -219,9 +242,7 @@ def metrics(queue: QueueDep, workers: WorkersDep) -> PlainTextResponse:
 @routes.post("/v1/jobs", tags=["jobs"], status_code=202, response_model=JobView,
              responses={200: {"model": JobView,
                               "description": "the same inputs and options were submitted before: that job"},
-                        413: {"description": "upload over BCF_MAX_UPLOAD_MB"},
-                        415: {"description": "a file is not an accepted image (or the material not a zip)"},
-                        422: {"description": "the material or the options cannot be used"}})
+                        **_errors(400, 413, 415, 422)})
 async def submit(upload: Annotated[Upload, Depends(read_upload)], queue: QueueDep, response: Response) -> Job:
     """Submit a material: files per role, or a zip. 202 with the new job, or 200 with the existing job when
     the same files and options were submitted before (and did not fail)."""
@@ -230,7 +251,7 @@ async def submit(upload: Annotated[Upload, Depends(read_upload)], queue: QueueDe
     return job
 
 
-@routes.get("/v1/jobs", tags=["jobs"])
+@routes.get("/v1/jobs", tags=["jobs"], responses=_errors(422))
 def list_jobs(queue: QueueDep,
               state: Annotated[Optional[list[JobState]], Query(description="repeat to give several")] = None,
               offset: Annotated[int, Query(ge=0, le=MAX_LIST_OFFSET)] = 0,
@@ -240,14 +261,14 @@ def list_jobs(queue: QueueDep,
     return JobList(jobs=jobs, total=total, offset=offset, limit=limit)
 
 
-@routes.get("/v1/jobs/{job_id}", tags=["jobs"], response_model=JobView)
+@routes.get("/v1/jobs/{job_id}", tags=["jobs"], response_model=JobView, responses=_errors(404, 422))
 def get_job(job: StoredJob) -> Job:
     return job
 
 
 @routes.delete("/v1/jobs/{job_id}", tags=["jobs"], response_model=JobView,
                responses={202: {"model": JobView, "description": "running: it stops within a heartbeat or two"},
-                          409: {"description": "the job already finished"}})
+                          **_errors(404, 409, 422)})
 def cancel_job(job: StoredJob, queue: QueueDep, response: Response) -> Job:
     """Cancel: a queued job at once (200), a running one within a few seconds (202; watch its state)."""
     job = queue.cancel(job.id) or job  # None only for a job that vanished meanwhile: jobs are never deleted
@@ -257,13 +278,15 @@ def cancel_job(job: StoredJob, queue: QueueDep, response: Response) -> Job:
     return job
 
 
-@routes.get("/v1/jobs/{job_id}/report", tags=["results"], response_class=FileResponse)
+@routes.get("/v1/jobs/{job_id}/report", tags=["results"], response_class=FileResponse,
+            responses=_errors(404, 409, 422))
 def get_report(job: SucceededJob, queue: QueueDep) -> FileResponse:
     """The job's report.json (the schema is in docs/FORMAT.md)."""
     return FileResponse(queue.artifacts_path(job.id) / REPORT_FILE, media_type="application/json")
 
 
-@routes.get("/v1/jobs/{job_id}/artifacts", tags=["results"], response_class=FileResponse)
+@routes.get("/v1/jobs/{job_id}/artifacts", tags=["results"], response_class=FileResponse,
+            responses=_errors(404, 409, 422))
 def get_artifacts(job: SucceededJob, queue: QueueDep, settings: SettingsDep) -> FileResponse:
     """Every result file as one zip (features_*.dds, decoder.bin, manifest.json, report.json, report.html,
     baselines/...)."""
@@ -272,7 +295,8 @@ def get_artifacts(job: SucceededJob, queue: QueueDep, settings: SettingsDep) -> 
                         background=BackgroundTask(archive.unlink, missing_ok=True))
 
 
-@routes.get("/v1/jobs/{job_id}/artifacts/{name:path}", tags=["results"], response_class=FileResponse)
+@routes.get("/v1/jobs/{job_id}/artifacts/{name:path}", tags=["results"], response_class=FileResponse,
+            responses=_errors(404, 409, 422))
 def get_artifact(job: SucceededJob, name: str, queue: QueueDep) -> FileResponse:
     """One result file by its name in the job's `result.artifacts`."""
     artifacts = job.result.artifacts if job.result else []
@@ -305,7 +329,23 @@ def create_app(settings: Settings, workers: Optional[Callable[[], WorkerStatus]]
     app.add_exception_handler(RequestValidationError, _invalid)  # type: ignore[arg-type]
     app.include_router(open_routes)
     app.include_router(routes)
+    app.openapi = lambda: _errors_as_json(app)  # type: ignore[method-assign]
     return app
+
+
+def _errors_as_json(app: FastAPI) -> dict[str, Any]:
+    """The OpenAPI document, with every error body under application/json: FastAPI files an operation's error
+    responses under its success media type (text/plain for /metrics), but errors are always JSON."""
+    if app.openapi_schema is None:
+        document = FastAPI.openapi(app)
+        for operations in document["paths"].values():
+            for operation in operations.values():
+                for code, response in operation.get("responses", {}).items():
+                    bodies = [c["schema"] for c in response.get("content", {}).values() if "schema" in c]
+                    if int(code) >= 400 and bodies:
+                        response["content"] = {"application/json": {"schema": bodies[0]}}
+        app.openapi_schema = document
+    return app.openapi_schema
 
 
 def gated(app: FastAPI, settings: Settings) -> ASGIApp:

@@ -363,3 +363,35 @@ def test_openapi_and_docs_are_served(accepting: Service) -> None:
     assert "Job" not in schema.json()["components"]["schemas"]
     docs = accepting.server.client.get("/docs")
     assert docs.status_code == 200 and "swagger" in docs.text.lower()
+
+
+# The error codes each operation can answer, as the tests above provoke them (issue 16, case 9).
+DOCUMENTED_ERRORS = {
+    ("post", "/v1/jobs"): {400, 401, 413, 415, 422, 503},
+    ("get", "/v1/jobs"): {401, 422, 503},
+    ("get", "/v1/jobs/{job_id}"): {401, 404, 422, 503},
+    ("delete", "/v1/jobs/{job_id}"): {401, 404, 409, 422, 503},
+    ("get", "/v1/jobs/{job_id}/report"): {401, 404, 409, 422, 503},
+    ("get", "/v1/jobs/{job_id}/artifacts"): {401, 404, 409, 422, 503},
+    ("get", "/v1/jobs/{job_id}/artifacts/{name}"): {401, 404, 409, 422, 503},
+    ("get", "/metrics"): {401, 503},
+    ("get", "/healthz"): {503},
+}
+
+
+def test_the_openapi_document_states_every_error_and_its_body(service: Service) -> None:
+    """Every error an operation sends is in the document, with the body the service really sends
+    ({"detail": "..."}, a string), and FastAPI's own 422 body (a list) is nowhere."""
+    document = service.server.client.get("/openapi.json").json()
+    assert document["components"]["schemas"]["ErrorBody"]["properties"] == {
+        "detail": {"type": "string", "title": "Detail"}}
+    assert "HTTPValidationError" not in document["components"]["schemas"]
+    for (method, path), codes in DOCUMENTED_ERRORS.items():
+        responses = document["paths"][path][method]["responses"]
+        errors = {int(code) for code in responses if int(code) >= 400}
+        assert errors == codes, (method, path, sorted(errors))
+        for code in errors:
+            schema = responses[str(code)]["content"]["application/json"]["schema"]
+            assert schema == {"$ref": "#/components/schemas/ErrorBody"}, (method, path, code, schema)
+    ready = document["paths"]["/readyz"]["get"]["responses"]["503"]["content"]["application/json"]["schema"]
+    assert ready == {"$ref": "#/components/schemas/Readiness"}
