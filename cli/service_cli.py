@@ -64,7 +64,7 @@ def serve(*, host: str = "127.0.0.1", port: PositiveInt = 8000, workers: Optiona
     from bcf.service.app import create_app, gated
 
     settings = _settings()
-    if not settings.api_tokens and not _is_loopback(host):
+    if not settings.token_tenants() and not _is_loopback(host):
         print(f"bcf serve: no BCF_API_TOKENS configured: listening on 127.0.0.1 only, not {host} "
               "(set BCF_API_TOKENS to accept other hosts)", file=sys.stderr, flush=True)
         host = "127.0.0.1"

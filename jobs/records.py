@@ -12,12 +12,13 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from bcf.core import JobOptions, Role
 
-__all__ = ["FINAL_STATES", "JOB_STATES", "InputFile", "InputView", "Job", "JobProgress", "JobResult", "JobState",
+__all__ = ["DEFAULT_TENANT", "FINAL_STATES", "JOB_STATES", "InputFile", "InputView", "Job", "JobProgress", "JobResult", "JobState",
            "JobView", "utc_now"]
 
 JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 JOB_STATES: tuple[JobState, ...] = get_args(JobState)
 FINAL_STATES: frozenset[str] = frozenset({"succeeded", "failed", "cancelled"})
+DEFAULT_TENANT = "default"  # the owner of jobs submitted with a bare token, or with none (loopback only)
 
 
 def utc_now() -> datetime.datetime:
@@ -87,7 +88,9 @@ class Job(JobView, _Model):
     """The stored record: the public view and the bookkeeping of the queue, the workers and the inputs."""
 
     inputs: list[InputFile]
-    input_key: str = Field(description="SHA-256 of the input files and options: equal keys are the same job")
+    input_key: str = Field(description="SHA-256 of the tenant, input files and options: equal keys are the same job")
+    # Records written before tenants existed belong to the default one.
+    tenant: str = Field(DEFAULT_TENANT, description="who submitted it: the name of its API token (BCF_API_TOKENS)")
     attempts: int = Field(0, description="times a worker started the job")
     worker: Optional[str] = None
     cancel_requested: bool = False

@@ -13,6 +13,7 @@ from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from bcf.core import MAX_TEXTURE_PIXELS
+from bcf.jobs.records import DEFAULT_TENANT
 
 __all__ = ["Settings"]
 
@@ -25,7 +26,10 @@ class Settings(BaseSettings):
     data_dir: Path = Field(default_factory=lambda: Path.home() / ".local" / "share" / "bcf",
                            description="queue and job databases (embedded mode), uploaded inputs, artifacts")
     api_tokens: Annotated[list[str], NoDecode] = Field(
-        default_factory=list, description="comma-separated bearer tokens; none: the API listens on 127.0.0.1 only")
+        default_factory=list, description="comma-separated bearer tokens, each tenant:token (its jobs are the "
+        "tenant's: other tenants cannot see them) or a bare token (tenant default); none: the API listens on "
+        "127.0.0.1 only")
+    admin_token: Optional[str] = Field(None, description="a bearer token that sees and manages every tenant's jobs")
     queue_url: Optional[str] = Field(None, description="redis://host:port/db: farm mode with Redis; "
                                                        "unset: embedded mode with SQLite files in data_dir")
     max_upload_mb: float = Field(512.0, gt=0, description="largest accepted request body, in MiB")
@@ -55,6 +59,25 @@ class Settings(BaseSettings):
         if value is not None and not value.startswith(("redis://", "rediss://", "unix://")):
             raise ValueError(f"BCF_QUEUE_URL must be a redis://, rediss:// or unix:// URL, got {value!r}")
         return value
+
+    @field_validator("api_tokens")
+    @classmethod
+    def _tenant_names(cls, value: list[str]) -> list[str]:
+        for entry in value:
+            tenant, separator, token = entry.rpartition(":")
+            if separator and (not tenant or not token):
+                raise ValueError(f"BCF_API_TOKENS: {entry!r} is not tenant:token")
+        return value
+
+    def token_tenants(self) -> dict[str, Optional[str]]:
+        """Every accepted bearer token -> its tenant; the admin token -> None (every tenant)."""
+        tenants: dict[str, Optional[str]] = {}
+        for entry in self.api_tokens:
+            tenant, separator, token = entry.rpartition(":")
+            tenants[token] = tenant if separator else DEFAULT_TENANT
+        if self.admin_token:
+            tenants[self.admin_token] = None
+        return tenants
 
     @property
     def farm_mode(self) -> bool:

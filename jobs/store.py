@@ -10,10 +10,11 @@ from __future__ import annotations
 
 import contextlib
 import sqlite3
+import uuid
 from pathlib import Path
 from typing import Callable, Iterator, Optional, Protocol
 
-from bcf.jobs.records import JOB_STATES, Job, utc_now
+from bcf.jobs.records import DEFAULT_TENANT, JOB_STATES, Job, utc_now
 from bcf.jobs.settings import Settings
 
 __all__ = ["JobStore", "RedisJobStore", "SqliteJobStore", "StoreUnavailable", "open_store"]
@@ -37,8 +38,8 @@ class JobStore(Protocol):
         """Atomically apply `change` to the job; returns the job as stored afterwards, None if there is none."""
 
     def list(self, states: Optional[set[str]] = None, offset: int = 0,
-             limit: Optional[int] = None) -> tuple[list[Job], int]:
-        """(jobs newest first, total matching)."""
+             limit: Optional[int] = None, tenant: Optional[str] = None) -> tuple[list[Job], int]:
+        """(jobs newest first, total matching), of one tenant or (None) of all."""
 
     def ping(self) -> None:
         """Raise StoreUnavailable if the store cannot be used."""
@@ -110,13 +111,16 @@ class SqliteJobStore:
             return changed
 
     def list(self, states: Optional[set[str]] = None, offset: int = 0,
-             limit: Optional[int] = None) -> tuple[list[Job], int]:
+             limit: Optional[int] = None, tenant: Optional[str] = None) -> tuple[list[Job], int]:
         wanted = sorted(states) if states else list(JOB_STATES)
-        marks = ",".join("?" * len(wanted))
+        where = f"state IN ({','.join('?' * len(wanted))})"
+        if tenant is not None:  # records written before tenants existed belong to the default tenant
+            where, wanted = where + f" AND COALESCE(json_extract(data, '$.tenant'), '{DEFAULT_TENANT}') = ?", \
+                [*wanted, tenant]
         with self._connect() as db:
-            total = db.execute(f"SELECT COUNT(*) FROM jobs WHERE state IN ({marks})", wanted).fetchone()[0]
-            rows = db.execute(f"SELECT data FROM jobs WHERE state IN ({marks}) ORDER BY created_at DESC, id "
-                              "LIMIT ? OFFSET ?", (*wanted, -1 if limit is None else limit, offset)).fetchall()
+            total = db.execute(f"SELECT COUNT(*) FROM jobs WHERE {where}", wanted).fetchone()[0]
+            rows = db.execute(f"SELECT data FROM jobs WHERE {where} ORDER BY created_at DESC, id LIMIT ? OFFSET ?",
+                              (*wanted, -1 if limit is None else limit, offset)).fetchall()
         return [Job.model_validate_json(r[0]) for r in rows], total
 
     def ping(self) -> None:
@@ -125,8 +129,8 @@ class SqliteJobStore:
 
 
 class RedisJobStore:
-    """bcf:job:<id> holds the JSON; sorted sets (score = creation time) index all jobs and each state;
-    bcf:key:<input_key> names the job that holds a key."""
+    """bcf:job:<id> holds the JSON; sorted sets (score = creation time) index all jobs, each state and each
+    tenant; bcf:key:<input_key> names the job that holds a key."""
 
     def __init__(self, url: str, prefix: str = "bcf"):
         import redis
@@ -173,6 +177,7 @@ class RedisJobStore:
             pipe.set(self._name("key", job.input_key), job.id)
             pipe.zadd(f"{self.prefix}:jobs", {job.id: score})
             pipe.zadd(self._name("state", job.state), {job.id: score})
+            pipe.zadd(self._name("tenant", job.tenant), {job.id: score})
             pipe.execute()
             return job, True
 
@@ -208,18 +213,22 @@ class RedisJobStore:
         return self._optimistic([self._name("job", job_id)], body)  # type: ignore[return-value]
 
     def list(self, states: Optional[set[str]] = None, offset: int = 0,
-             limit: Optional[int] = None) -> tuple[list[Job], int]:
+             limit: Optional[int] = None, tenant: Optional[str] = None) -> tuple[list[Job], int]:
         with self._errors():
+            index = f"{self.prefix}:jobs"
+            pipe = self.client.pipeline()
             if states and set(states) != set(JOB_STATES):
                 # Merge the per-state indexes into a temporary one (kept for a few seconds, then expired).
                 keys = [self._name("state", s) for s in sorted(states)]
                 index = f"{self.prefix}:tmp:{'+'.join(sorted(states))}"
-                pipe = self.client.pipeline()
                 pipe.zunionstore(index, keys)
                 pipe.expire(index, 5)
-                pipe.execute()
-            else:
-                index = f"{self.prefix}:jobs"
+            if tenant is not None:  # and keep the tenant's jobs (jobs stored before tenants existed have none)
+                mine = f"{self.prefix}:tmp:{uuid.uuid4().hex}"
+                pipe.zinterstore(mine, [index, self._name("tenant", tenant)], aggregate="MAX")
+                pipe.expire(mine, 5)
+                index = mine
+            pipe.execute()
             total = self.client.zcard(index)
             stop = -1 if limit is None else offset + limit - 1
             ids = [i.decode() for i in self.client.zrevrange(index, offset, stop)] if limit != 0 else []

@@ -19,7 +19,7 @@ from pydantic import BaseModel, ConfigDict
 from bcf.core import (InputError, JobOptions, MaterialFiles, Role, TextureSet, load_texture_set, resolve_material,
                       result_identity)
 from bcf.jobs.queue import JobQueue
-from bcf.jobs.records import InputFile, Job
+from bcf.jobs.records import DEFAULT_TENANT, InputFile, Job
 
 __all__ = ["StagedMaterial", "load_job_material", "submit_material"]
 
@@ -36,23 +36,27 @@ class StagedMaterial(BaseModel):
     client_names: dict[Role, str] = {}  # the names the client gave the files of `files`, shown back only
 
 
-def _new_job(material: StagedMaterial, files: dict[Role, Path], texture_set: TextureSet, options: JobOptions) -> Job:
-    """The job's record. Its input key hashes what decides the result (`bcf.core.result_identity`: the inputs'
-    bytes by role, the normal convention and size they were loaded with, the resolved options without the
-    device) and the baselines, not the names: the same files under other names are the same job."""
+def _new_job(material: StagedMaterial, files: dict[Role, Path], texture_set: TextureSet, options: JobOptions,
+             tenant: str) -> Job:
+    """The job's record. Its input key hashes the tenant and what decides the result (`bcf.core.result_identity`:
+    the inputs' bytes by role, the normal convention and size they were loaded with, the resolved options
+    without the device) and the baselines, not the names: the same files under other names are the same job,
+    within one tenant (another's resubmission is a job of its own, and learns nothing of the first)."""
     source = texture_set.source
     hashes = {f.role: f.sha256 for f in source.files}
     resolved = options.model_copy(update={"normal_convention": source.normal_convention})
     identity = result_identity(hashes, source.normal_convention, (source.width, source.height),
                                resolved.compress_options())
-    key = json.dumps({"result": identity.key(), "baselines": sorted(resolved.baselines)}, sort_keys=True)
+    key = json.dumps({"result": identity.key(), "baselines": sorted(resolved.baselines), "tenant": tenant},
+                     sort_keys=True)
     inputs = [InputFile(role=role, name=material.client_names.get(role, path.name), stored_as=f"{role}/{path.name}",
                         sha256=hashes[role], bytes=path.stat().st_size) for role, path in files.items()]
     return Job(id=uuid.uuid4().hex[:16], name=source.name, options=resolved, inputs=inputs,
-               input_key=hashlib.sha256(key.encode()).hexdigest(), notes=list(texture_set.notes))
+               input_key=hashlib.sha256(key.encode()).hexdigest(), notes=list(texture_set.notes), tenant=tenant)
 
 
-def submit_material(queue: JobQueue, material: StagedMaterial, options: JobOptions) -> tuple[Job, bool]:
+def submit_material(queue: JobQueue, material: StagedMaterial, options: JobOptions,
+                    tenant: str = DEFAULT_TENANT) -> tuple[Job, bool]:
     """Validate the material completely (roles, headers, sizes, a full decode, as `bcf compress`), store its
     inputs, queue the job: (job, created). Resubmitting a queued, running or succeeded job's inputs and options
     returns that job. Raises `bcf.core.InputError` for whatever the client must fix."""
@@ -63,7 +67,7 @@ def submit_material(queue: JobQueue, material: StagedMaterial, options: JobOptio
                                                                normal_convention=options.normal_convention))
     files = resolved.roles()
     texture_set = load_texture_set(resolved, name=material.name, max_pixels=queue.settings.max_texture_pixels)
-    job = _new_job(material, files, texture_set, options)
+    job = _new_job(material, files, texture_set, options, tenant)
     folder = queue.inputs_path(job.id)
     try:  # inputs in place before the job is queued: a worker may start it at once
         for stored in job.inputs:

@@ -25,7 +25,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from bcf.core import REPORT_FILE, __version__
 from bcf.jobs.queue import JobQueue
-from bcf.jobs.records import FINAL_STATES, Job, JobState, JobView
+from bcf.jobs.records import DEFAULT_TENANT, FINAL_STATES, Job, JobState, JobView
 from bcf.jobs.settings import Settings
 from bcf.jobs.store import StoreUnavailable
 from bcf.jobs.supervisor import WorkerStatus
@@ -65,7 +65,7 @@ class RequestGate:
 
     def __init__(self, app: ASGIApp, settings: Settings):
         self.app = app
-        self.tokens = settings.api_tokens
+        self.tokens = list(settings.token_tenants())
         self.limit = int(settings.max_upload_mb * 2**20)
         self.too_large = f"request body larger than the limit of {settings.max_upload_mb:.0f} MiB (BCF_MAX_UPLOAD_MB)"
 
@@ -136,17 +136,27 @@ _bearer = HTTPBearer(auto_error=False, description="one of BCF_API_TOKENS")
 
 
 def authorised(settings: SettingsDep,
-               credentials: Annotated[Optional[HTTPAuthorizationCredentials], Depends(_bearer)]) -> None:
-    """Checked again here (`RequestGate` checks first) so the app is safe without the gate too, and so OpenAPI
-    shows the bearer scheme. No tokens configured: `bcf serve` listens on 127.0.0.1 only."""
-    if settings.api_tokens and not token_accepted(credentials.credentials if credentials else "",
-                                                  settings.api_tokens):
-        raise HTTPException(401, UNAUTHORISED, headers={"WWW-Authenticate": "Bearer"})
+               credentials: Annotated[Optional[HTTPAuthorizationCredentials], Depends(_bearer)]) -> Optional[str]:
+    """The caller's tenant (None: the admin token, or no tokens configured, when `bcf serve` listens on
+    127.0.0.1 only and one user sees everything). Checked again here (`RequestGate` checks first) so the app
+    is safe without the gate too, and so OpenAPI shows the bearer scheme."""
+    tenants = settings.token_tenants()
+    if not tenants:
+        return None
+    given = credentials.credentials if credentials else ""
+    for token, tenant in tenants.items():
+        if token_accepted(given, [token]):
+            return tenant
+    raise HTTPException(401, UNAUTHORISED, headers={"WWW-Authenticate": "Bearer"})
 
 
-def stored_job(job_id: str, queue: QueueDep) -> Job:
+Tenant = Annotated[Optional[str], Depends(authorised)]
+
+
+def stored_job(job_id: str, queue: QueueDep, tenant: Tenant) -> Job:
+    """The job of the path; another tenant's job is as absent as one that never existed."""
     job = queue.store.get(job_id)
-    if job is None:
+    if job is None or (tenant is not None and job.tenant != tenant):
         raise HTTPException(404, f"no job {job_id!r}")
     return job
 
@@ -243,21 +253,22 @@ def metrics(queue: QueueDep, workers: WorkersDep) -> PlainTextResponse:
              responses={200: {"model": JobView,
                               "description": "the same inputs and options were submitted before: that job"},
                         **_errors(400, 413, 415, 422)})
-async def submit(upload: Annotated[Upload, Depends(read_upload)], queue: QueueDep, response: Response) -> Job:
+async def submit(upload: Annotated[Upload, Depends(read_upload)], queue: QueueDep, tenant: Tenant,
+                 response: Response) -> Job:
     """Submit a material: files per role, or a zip. 202 with the new job, or 200 with the existing job when
     the same files and options were submitted before (and did not fail)."""
-    job, created = await run_in_threadpool(submit_upload, queue, upload)
+    job, created = await run_in_threadpool(submit_upload, queue, upload, tenant or DEFAULT_TENANT)
     response.status_code, response.headers["Location"] = 202 if created else 200, f"/v1/jobs/{job.id}"
     return job
 
 
 @routes.get("/v1/jobs", tags=["jobs"], responses=_errors(422))
-def list_jobs(queue: QueueDep,
+def list_jobs(queue: QueueDep, tenant: Tenant,
               state: Annotated[Optional[list[JobState]], Query(description="repeat to give several")] = None,
               offset: Annotated[int, Query(ge=0, le=MAX_LIST_OFFSET)] = 0,
               limit: Annotated[int, Query(ge=1, le=1000)] = 100) -> JobList:
-    """Jobs, newest first."""
-    jobs, total = queue.store.list(set(state) if state else None, offset, limit)
+    """Jobs, newest first: the caller's tenant's (the admin token's: every tenant's)."""
+    jobs, total = queue.store.list(set(state) if state else None, offset, limit, tenant)
     return JobList(jobs=jobs, total=total, offset=offset, limit=limit)
 
 

@@ -194,7 +194,7 @@ def client_message(exc: InputError, staged: StagedMaterial) -> str:
                        file=lambda path: shown.get(Path(path)) or (what if Path(path) in whole else Path(path).name))
 
 
-def submit_upload(queue: JobQueue, upload: Upload) -> tuple[Job, bool]:
+def submit_upload(queue: JobQueue, upload: Upload, tenant: str) -> tuple[Job, bool]:
     """Stage the upload, then submit it (`bcf.jobs.submission.submit_material`): (job, created). HTTPException for
     anything the client must fix; the staging folder is removed either way (the job's inputs moved out)."""
     uploads = queue.settings.uploads_dir
@@ -203,6 +203,6 @@ def submit_upload(queue: JobQueue, upload: Upload) -> tuple[Job, bool]:
         files, options = upload
         staged = _stage(files, Path(staging), queue.settings)
         try:
-            return submit_material(queue, staged, options)
+            return submit_material(queue, staged, options, tenant)
         except InputError as exc:
             raise HTTPException(422, client_message(exc, staged)) from None

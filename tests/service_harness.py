@@ -117,7 +117,7 @@ class Server(Process):
                          environment.root, environment._log("serve"))
         self.environment = environment
         self.url = f"http://127.0.0.1:{port}"
-        token = environment.env.get("BCF_API_TOKENS", "").split(",")[0]
+        token = environment.env.get("BCF_API_TOKENS", "").split(",")[0].rpartition(":")[2]  # tenant:token
         headers = {"Authorization": f"Bearer {token}"} if token else {}
         self.client = httpx.Client(base_url=self.url, headers=headers, timeout=60.0)
         wait_until(self._healthy, START_TIMEOUT_S, f"bcf serve on {self.url}", logs=(self.log,))

@@ -178,6 +178,22 @@ def test_list_is_newest_first_filters_by_state_and_paginates(store: JobStore) ->
     assert store.list({"running"})[0] == [jobs[1]]
 
 
+def test_list_of_one_tenant_keeps_to_its_jobs_with_states_and_pages(store: JobStore) -> None:
+    owners = ["alice", "bob", "alice", "alice", "bob"]
+    jobs = [make_job(state="failed" if i == 2 else "queued", created_at=HOUR_AGO + datetime.timedelta(seconds=i),
+                     tenant=owner) for i, owner in enumerate(owners)]
+    for job in jobs:
+        store.add(job)
+    alices = [j.id for j in reversed(jobs) if j.tenant == "alice"]
+    listed, total = store.list(tenant="alice")
+    assert [j.id for j in listed] == alices and total == 3
+    assert [j.id for j in store.list(tenant="alice", offset=1, limit=1)[0]] == alices[1:2]
+    assert [j.id for j in store.list({"queued"}, tenant="alice")[0]] == [alices[0], alices[2]]
+    assert store.list({"failed"}, tenant="bob") == ([], 0)
+    assert store.list(tenant="carol") == ([], 0)
+    assert store.list()[1] == 5  # no tenant: every job (the admin's view)
+
+
 def test_the_state_index_follows_state_changes(store: JobStore) -> None:
     for state in ["queued", "queued", "running", "failed"]:
         store.add(make_job(state=state))

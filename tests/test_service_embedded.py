@@ -225,3 +225,35 @@ def test_a_killed_worker_is_replaced_and_workers_end_with_their_server(tmp_path:
     finally:
         server.stop(signal.SIGKILL)
     wait_until(lambda: _ended(second), 30, "the worker to end with its server", logs=(server.log,))
+
+
+def test_tenants_see_only_their_own_jobs_and_the_admin_sees_all(tmp_path: Path) -> None:
+    """Named tokens: another tenant's job is a 404 for reading, listing, downloading and cancelling; the same
+    files from two tenants are two jobs (deduplication tells nobody what another submitted); the admin token
+    sees both (issue 16, case 6)."""
+    environment = BcfEnvironment(tmp_path, api_tokens="alice:a-token,bob:b-token", admin_token="root-token")
+    server = environment.serve(workers=0)
+    as_ = {name: {"Authorization": f"Bearer {token}"}
+           for name, token in (("alice", "a-token"), ("bob", "b-token"), ("admin", "root-token"))}
+    try:
+        files = tiny_material(8)
+        data = {"options": json.dumps(TINY_OPTIONS)}
+        alice = server.client.post("/v1/jobs", files=files, data=data, headers=as_["alice"])
+        assert alice.status_code == 202, alice.text
+        again = server.client.post("/v1/jobs", files=files, data=data, headers=as_["alice"])
+        assert again.status_code == 200 and again.json()["id"] == alice.json()["id"]  # her own duplicate
+        bob = server.client.post("/v1/jobs", files=files, data=data, headers=as_["bob"])
+        assert bob.status_code == 202 and bob.json()["id"] != alice.json()["id"], bob.text
+        first = alice.json()["id"]
+        for method, suffix in (("GET", ""), ("GET", "/report"), ("GET", "/artifacts"), ("DELETE", "")):
+            response = server.client.request(method, f"/v1/jobs/{first}{suffix}", headers=as_["bob"])
+            assert response.status_code == 404 and first in response.json()["detail"], (method, suffix, response.text)
+        listed = server.client.get("/v1/jobs", headers=as_["bob"]).json()
+        assert listed["total"] == 1 and [j["id"] for j in listed["jobs"]] == [bob.json()["id"]]
+        everyone = server.client.get("/v1/jobs", headers=as_["admin"]).json()
+        assert everyone["total"] == 2
+        assert server.client.get(f"/v1/jobs/{first}", headers=as_["admin"]).status_code == 200
+        assert server.stored(first).tenant == "alice" and server.stored(bob.json()["id"]).tenant == "bob"
+        assert server.client.delete(f"/v1/jobs/{first}", headers=as_["alice"]).json()["state"] == "cancelled"
+    finally:
+        server.stop()
