@@ -21,7 +21,7 @@ from bcf.core.fit.batches import BatchSampler
 from bcf.core.fit.model import (BlockFeatures, Decoder, FeatureTextureSpec, FreeFeatures, NeuralMaterial,
                                 feature_textures, to_block_features)
 from bcf.core.fit.pca import pca_start
-from bcf.core.fit.sampling import ReferenceMaterial
+from bcf.core.fit.sampling import ReferenceMaterial, texel_centres
 from bcf.core.material.texture_set import TextureSet
 from bcf.core.options import ResolvedOptions, Schedule
 from bcf.core.psnr import psnr_from_mse
@@ -231,10 +231,7 @@ def centre_error(model: NeuralMaterial, reference: ReferenceMaterial) -> float:
         rows = max(1, CENTRE_CHUNK // width)
         total = 0.0
         for y in range(0, height, rows):
-            ys = torch.arange(y, min(y + rows, height), device=target.device, dtype=torch.float32)
-            xs = torch.arange(width, device=target.device, dtype=torch.float32)
-            gy, gx = torch.meshgrid((ys + 0.5) / height, (xs + 0.5) / width, indexing="ij")
-            uv = torch.stack([gx.reshape(-1), gy.reshape(-1)], dim=1)
+            uv = texel_centres(width, height, slice(y, y + rows), target.device)
             decoded = model(uv, float(level)).clamp(0.0, 1.0)
             expected = target[:, y:y + rows].reshape(channels, -1).t()
             total += float(torch.sum((decoded - expected) ** 2))
