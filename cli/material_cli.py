@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Callable, Literal, Optional, TextIO, TypeVar
 
 from cyclopts import Group, Parameter
-from cyclopts.types import NonNegativeInt, PositiveInt
+from cyclopts.types import NonNegativeInt, PositiveFloat, PositiveInt
 
 from bcf.cli import EXCLUSIVE, OptionalOutput, Output, Quiet, clock, model_flags, say
 from bcf.core import ROLES, CompressOptions, InputError, JobOptions, MaterialFiles
@@ -88,7 +88,8 @@ def compress(material_dir: Optional[Path] = None, /, *, output: Output,
              files: Annotated[MaterialFiles, model_flags(*ROLES, group=FILES)] = MaterialFiles(),
              options: Annotated[JobOptions, model_flags(*TRAINING_FIELDS, group=TRAINING)] = JobOptions(),
              baselines: Annotated[Optional[list[str]], Parameter(consume_multiple=(0, 1))] = None,
-             max_pixels: Optional[PositiveInt] = None, force: bool = False, quiet: Quiet = False) -> int:
+             max_pixels: Optional[PositiveInt] = None, memory_budget_mb: Optional[PositiveFloat] = None,
+             force: bool = False, quiet: Quiet = False) -> int:
     """Compress a PBR material (albedo, normal, ARM) into BC6H neural features + decoder weights.
 
     Roles given explicitly override those found in MATERIAL_DIR. Missing AO is 1, missing metalness 0.
@@ -101,9 +102,12 @@ def compress(material_dir: Optional[Path] = None, /, *, output: Output,
             such as bc1_bc5_full, astc_12x12_half, naive_bc6
         max_pixels: largest texture accepted, width x height, checked from the file headers before any pixel
             is decoded (default: 67108864, 8192x8192)
+        memory_budget_mb: refuse a material whose compression needs an estimated peak memory above this, in MiB,
+            checked from the file headers before any pixel is decoded (default: this machine's physical memory)
         force: replace OUT if it exists and is not empty
     """
-    from bcf.core import check_output, compress_material, format_report, load_material, resolve_options
+    from bcf.core import (MAX_TEXTURE_PIXELS, check_memory, check_output, compress_material, decode_texture_set,
+                          format_report, inspect_texture_set, physical_memory, resolve_material, resolve_options)
 
     if material_dir is None and files.albedo is None:
         raise InputError("give a MATERIAL_DIR or the texture files (--albedo, --normal, --arm ...)")
@@ -111,11 +115,15 @@ def compress(material_dir: Optional[Path] = None, /, *, output: Output,
     job = JobOptions(**options.model_dump(exclude={"baselines"}),
                      baselines=[] if baselines is None else [",".join(baselines) or "all"])
     check_output(output, force)
-    texture_set = load_material(material_dir, files.model_copy(update={"normal_convention": job.normal_convention}),
-                                **({} if max_pixels is None else {"max_pixels": max_pixels}))
+    found = resolve_material(material_dir, files.model_copy(update={"normal_convention": job.normal_convention}))
+    inspected = inspect_texture_set(found, name=None if material_dir is None else Path(material_dir).resolve().name,
+                                    max_pixels=max_pixels or MAX_TEXTURE_PIXELS)
+    resolved = resolve_options(job.compress_options())
+    budget = int(memory_budget_mb * 2**20) if memory_budget_mb else physical_memory()
+    check_memory(inspected.source.width, inspected.source.height, resolved, budget, "--memory-budget-mb")
+    texture_set = decode_texture_set(inspected)
     for line in _describe(texture_set):
         say(line)
-    resolved = resolve_options(job.compress_options())
     say(f"training: preset {resolved.preset}, features {resolved.features}, BC6H mode {resolved.block_mode}, "
         f"{resolved.init} start, MLP 12-{resolved.hidden}-8, {resolved.phase1_iterations} + "
         f"{resolved.phase2_iterations} iterations of {resolved.batch_size} samples on {resolved.device}")

@@ -2,7 +2,7 @@
 
 Sub-packages, each importing only those before it (tests/test_architecture.py checks it):
 
-    options, errors, files, psnr, version   the vocabulary every layer shares
+    options, errors, files, psnr, resources, version   the vocabulary every layer shares
     codec      BC6H blocks and DDS/KTX2 files (numpy only)
     material   image files -> the validated 8-channel `TextureSet`; asset-tree scans
     fit        sampling, the neural material, the differentiable BC6H decode, the two-phase training
@@ -26,6 +26,7 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
     "bcf.core.files": ("atomic_path", "file_sha256", "replace_folder", "staging_folder", "staging_leftovers",
                        "write_text_atomic"),
     "bcf.core.psnr": ("psnr_from_mse",),
+    "bcf.core.resources": ("MemoryBudgetError", "check_memory", "estimate_peak_memory", "physical_memory"),
     "bcf.core.options": ("BASELINES", "PRESETS", "Address", "CompressOptions", "Device", "FeatureSize",
                          "JobOptions", "Preset", "ResolvedOptions", "parse_baselines", "resolve_options"),
     "bcf.core.codec.containers": ("BC6HTexture", "ContainerError", "full_mip_count", "mip_size", "read_dds",
@@ -38,7 +39,8 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
     "bcf.core.material.roles": ("IMAGE_EXTENSIONS", "ROLES", "TEXTURES", "MaterialError", "MaterialFiles",
                                 "NormalConvention", "Role", "material_images"),
     "bcf.core.material.naming": ("discover_material", "normal_convention_from_name", "resolve_material"),
-    "bcf.core.material.texture_set": ("MAX_TEXTURE_PIXELS", "MaterialSource", "TextureSet", "load_material",
+    "bcf.core.material.texture_set": ("MAX_TEXTURE_PIXELS", "InspectedMaterial", "MaterialSource", "TextureSet",
+                                      "decode_texture_set", "inspect_texture_set", "load_material",
                                       "load_texture_set"),
     "bcf.core.material.assets": ("AssetScan", "FoundMaterial", "scan_assets"),
     "bcf.core.fit.training": ("DeviceUnavailableError", "ProgressCallback", "StopCallback", "TrainingProgress",

@@ -12,7 +12,7 @@ from typing import Annotated, Optional
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
-from bcf.core import MAX_TEXTURE_PIXELS
+from bcf.core import MAX_TEXTURE_PIXELS, physical_memory
 from bcf.jobs.records import DEFAULT_TENANT
 
 __all__ = ["Settings"]
@@ -39,6 +39,12 @@ class Settings(BaseSettings):
         MAX_TEXTURE_PIXELS, ge=64 * 64, le=16384 * 16384,
         description="largest texture accepted, width x height, checked from each image's header before any pixel "
                     "is decoded (the default allows 8K textures)")
+    job_memory_mb: Optional[float] = Field(
+        None, gt=0, description="largest estimated peak memory of one job, in MiB, checked from the image headers "
+        "before any pixel is decoded (at submission and again by the worker); none: the physical memory of the "
+        "machine that checks")
+    job_time_limit_s: float = Field(86400.0, gt=0, description="wall-clock limit of one job's run, in seconds: "
+                                    "a job still running then stops and fails")
     max_attempts: int = Field(3, ge=1, description="runs of a job before a worker death marks it failed")
     heartbeat_s: float = Field(2.0, gt=0, description="how often a running job's record is refreshed")
     stale_after_s: float = Field(30.0, gt=0, description="a running job whose record is this old has lost "
@@ -78,6 +84,10 @@ class Settings(BaseSettings):
         if self.admin_token:
             tenants[self.admin_token] = None
         return tenants
+
+    def memory_budget(self) -> int:
+        """Bytes a job may need (`job_memory_mb`, else this machine's physical memory)."""
+        return int(self.job_memory_mb * 2**20) if self.job_memory_mb else physical_memory()
 
     @property
     def farm_mode(self) -> bool:

@@ -16,8 +16,9 @@ from typing import Optional
 
 from pydantic import BaseModel, ConfigDict
 
-from bcf.core import (InputError, JobOptions, MaterialFiles, Role, TextureSet, load_texture_set, resolve_material,
-                      result_identity)
+from bcf.core import (InputError, InspectedMaterial, JobOptions, MaterialFiles, Role, TextureSet, check_memory,
+                      decode_texture_set, inspect_texture_set, resolve_material, resolve_options, result_identity)
+from bcf.jobs.settings import Settings
 from bcf.jobs.queue import JobQueue
 from bcf.jobs.records import DEFAULT_TENANT, InputFile, Job
 
@@ -36,13 +37,13 @@ class StagedMaterial(BaseModel):
     client_names: dict[Role, str] = {}  # the names the client gave the files of `files`, shown back only
 
 
-def _new_job(material: StagedMaterial, files: dict[Role, Path], texture_set: TextureSet, options: JobOptions,
+def _new_job(material: StagedMaterial, files: dict[Role, Path], inspected: InspectedMaterial, options: JobOptions,
              tenant: str) -> Job:
     """The job's record. Its input key hashes the tenant and what decides the result (`bcf.core.result_identity`:
     the inputs' bytes by role, the normal convention and size they were loaded with, the resolved options
     without the device) and the baselines, not the names: the same files under other names are the same job,
     within one tenant (another's resubmission is a job of its own, and learns nothing of the first)."""
-    source = texture_set.source
+    source = inspected.source
     hashes = {f.role: f.sha256 for f in source.files}
     resolved = options.model_copy(update={"normal_convention": source.normal_convention})
     identity = result_identity(hashes, source.normal_convention, (source.width, source.height),
@@ -52,13 +53,13 @@ def _new_job(material: StagedMaterial, files: dict[Role, Path], texture_set: Tex
     inputs = [InputFile(role=role, name=material.client_names.get(role, path.name), stored_as=f"{role}/{path.name}",
                         sha256=hashes[role], bytes=path.stat().st_size) for role, path in files.items()]
     return Job(id=uuid.uuid4().hex[:16], name=source.name, options=resolved, inputs=inputs,
-               input_key=hashlib.sha256(key.encode()).hexdigest(), notes=list(texture_set.notes), tenant=tenant)
+               input_key=hashlib.sha256(key.encode()).hexdigest(), notes=list(inspected.notes), tenant=tenant)
 
 
 def submit_material(queue: JobQueue, material: StagedMaterial, options: JobOptions,
                     tenant: str = DEFAULT_TENANT) -> tuple[Job, bool]:
-    """Validate the material completely (roles, headers, sizes, a full decode, as `bcf compress`), store its
-    inputs, queue the job: (job, created). Resubmitting a queued, running or succeeded job's inputs and options
+    """Validate the material from its files' headers (roles, formats, sizes, the pixel limit; no pixel is decoded
+    here: the worker decodes, and a corrupt file fails the job), store its inputs, queue the job: (job, created). Resubmitting a queued, running or succeeded job's inputs and options
     returns that job. Raises `bcf.core.InputError` for whatever the client must fix."""
     if "device" in options.model_fields_set:  # any worker may take the job: the device is the worker's
         raise InputError("{} is chosen by the worker that runs the job ('bcf worker --device')",
@@ -66,8 +67,9 @@ def submit_material(queue: JobQueue, material: StagedMaterial, options: JobOptio
     resolved = resolve_material(material.folder, MaterialFiles(**material.files,
                                                                normal_convention=options.normal_convention))
     files = resolved.roles()
-    texture_set = load_texture_set(resolved, name=material.name, max_pixels=queue.settings.max_texture_pixels)
-    job = _new_job(material, files, texture_set, options, tenant)
+    inspected = inspect_texture_set(resolved, name=material.name, max_pixels=queue.settings.max_texture_pixels)
+    _check_memory(inspected, options, queue.settings)
+    job = _new_job(material, files, inspected, options, tenant)
     folder = queue.inputs_path(job.id)
     try:  # inputs in place before the job is queued: a worker may start it at once
         for stored in job.inputs:
@@ -82,8 +84,24 @@ def submit_material(queue: JobQueue, material: StagedMaterial, options: JobOptio
     return stored_job, created
 
 
-def load_job_material(job: Job, inputs: Path) -> TextureSet:
-    """The job's texture set from its stored inputs (`inputs` is the job's folder, `queue.inputs_path`)."""
+def _check_memory(inspected: InspectedMaterial, options: JobOptions, settings: Settings) -> None:
+    """`bcf.core.MemoryBudgetError` when the job's estimated peak memory is over the budget of `settings`."""
+    check_memory(inspected.source.width, inspected.source.height, resolve_options(options.compress_options()),
+                 settings.memory_budget(), "BCF_JOB_MEMORY_MB")
+
+
+def load_job_material(job: Job, inputs: Path, settings: Settings) -> TextureSet:
+    """The job's texture set from its stored inputs (`inputs` is the job's folder, `queue.inputs_path`): their
+    pixels decoded here, in the worker, for the first time, after the limits of this worker's `settings` are
+    checked again from the headers. Raises `bcf.core.InputError` (the job fails with it) for a file over a
+    limit, one that does not decode, or one that is no longer the one submitted."""
     files = MaterialFiles(**{f.role: inputs / f.stored_as for f in job.inputs},
                           normal_convention=job.options.normal_convention)
-    return load_texture_set(files, name=job.name)
+    inspected = inspect_texture_set(files, name=job.name, max_pixels=settings.max_texture_pixels)
+    _check_memory(inspected, job.options, settings)  # this worker's budget: farm workers may differ
+    submitted = {f.role: f.sha256 for f in job.inputs}
+    for stored in inspected.source.files:
+        if stored.sha256 != submitted[stored.role]:
+            raise InputError("the stored input differs from the file submitted (SHA-256 mismatch)",
+                             file=inspected.paths[stored.role], role=stored.role, fix="submit the material again")
+    return decode_texture_set(inspected)

@@ -139,15 +139,25 @@ class Worker:
                  self.device)
         self.queue.remove_partial_outputs(job.id)
         output = self.queue.artifacts_path(job.id)
+        deadline = time.monotonic() + self.settings.job_time_limit_s
         with _Monitor(self.queue.store, job, self.id, self.settings.heartbeat_s,
                       resolved.phase2_iterations) as monitor:
+            def should_stop() -> bool:
+                return monitor.cancel.is_set() or self.stopping() or time.monotonic() > deadline
             try:
-                texture_set = load_job_material(job, self.queue.inputs_path(job.id))
+                texture_set = load_job_material(job, self.queue.inputs_path(job.id), self.settings)
+                self._record_notes(job.id, texture_set.notes)
                 report = compress_material(
                     texture_set, resolved, output, progress=monitor.on_progress,
-                    should_stop=lambda: monitor.cancel.is_set() or self.stopping(), overwrite=True,
+                    should_stop=should_stop, overwrite=True,
                     baselines=job.options.baselines, note=monitor.on_note)
             except TrainingStopped:
+                if time.monotonic() > deadline and not monitor.cancel.is_set() and not self.stopping():
+                    limit = (f"stopped after {time.perf_counter() - started:.0f} s: longer than the wall-clock limit "
+                             f"of {self.settings.job_time_limit_s:g} s per job (BCF_JOB_TIME_LIMIT_S)")
+                    self._update_held(job.id, lambda held: held.ended("failed", monitor.progress, error=limit))
+                    log.error("job %s: %s", job.id, limit)
+                    return
                 if self.stopping() and not monitor.cancel.is_set():
                     self.release(job.id)
                     return
@@ -166,6 +176,16 @@ class Worker:
         if done is not None and done.state == "succeeded":
             log.info("job %s: succeeded in %.1f s, %.2f dB", job.id, time.perf_counter() - started,
                      report.aggregate.psnr.all)
+
+    def _record_notes(self, job_id: str, notes: tuple[str, ...]) -> None:
+        """What decoding the pixels noticed (a flipped-looking normal map, clipped values) joins the notes the
+        API found in the headers. A store that does not answer loses the notes, not the job: the report has them."""
+        def add(job: Job) -> Job:
+            return job.model_copy(update={"notes": [*job.notes, *(n for n in notes if n not in job.notes)]})
+        try:
+            self._update_held(job_id, add)
+        except StoreUnavailable as exc:
+            log.warning("job %s: notes not stored: %s", job_id, exc)
 
     def _recover_forever(self) -> None:
         interval = max(1.0, self.settings.stale_after_s / 3)

@@ -19,7 +19,7 @@ import bcf.core
 ROOT = Path(__file__).resolve().parents[1]
 FOLDERS = {"core": "bcf.core", "engine": "bcf.engine", "jobs": "bcf.jobs", "service": "bcf.service", "cli": "bcf"}
 # Core's layers, lowest first; the base modules are the vocabulary every layer shares.
-CORE_LAYERS = (("options", "errors", "files", "psnr", "version"), ("codec",), ("material",), ("fit",), ("export",),
+CORE_LAYERS = (("options", "errors", "files", "psnr", "resources", "version"), ("codec",), ("material",), ("fit",), ("export",),
                ("report",), ("pipeline",))
 # Which top-level parts each part may import (besides itself).
 ALLOWED = {"core": set(), "engine": {"core"}, "jobs": {"core"}, "service": {"core", "jobs"},

@@ -518,6 +518,12 @@ def _case_over_max_pixels(tmp: Path) -> tuple[list[object], list[object]]:
     return [folder, "--max-pixels", "4096"], [folder / "albedo.png", "128x128 is 16,384 pixels", "limit of 4,096"]
 
 
+def _case_over_memory_budget(tmp: Path) -> tuple[list[object], list[object]]:
+    folder = write_sample_set(tmp / "mat")
+    return [folder, "--memory-budget-mb", "64"], ["128x128 material", "more than the budget of 0.1 GiB",
+                                                  "--memory-budget-mb"]
+
+
 def _case_no_such_folder(tmp: Path) -> tuple[list[object], list[object]]:
     return [tmp / "nope"], [tmp / "nope", "no such folder"]
 
@@ -535,6 +541,7 @@ BAD_INPUTS: dict[str, Callable[[Path], tuple[list[object], list[object]]]] = {
     "nonexistent folder": _case_no_such_folder,
     "decompression bomb": _case_pixel_bomb,
     "over --max-pixels": _case_over_max_pixels,
+    "over --memory-budget-mb": _case_over_memory_budget,
 }
 
 

@@ -18,6 +18,7 @@ from bcf.core import load_export
 from bcf.core.codec import bc6h
 from bcf.core.codec import containers
 from bcf_command import run_bcf
+from crafted_images import png_claiming
 from reference_decoders import decode_with_oiio
 from service_harness import TINY_OPTIONS, BcfEnvironment, tiny_material, wait_until
 
@@ -89,6 +90,32 @@ def test_submit_poll_download_and_decode_the_artifacts(service: Any, tmp_path: P
     assert "baselines/bc1_bc5_half/albedo.dds" in finished["result"]["artifacts"]
     scored = service.client.get(f"/v1/jobs/{finished['id']}/report").json()["baselines"]
     assert set(scored) == {"bc1_bc5_half", "naive_bc6"}
+
+
+def test_the_api_reads_headers_only_and_a_file_that_does_not_decode_fails_its_job(service: Any) -> None:
+    """Pixels are decoded by the worker, not the API: a PNG whose header is sound but whose data stops after one
+    row is accepted (202), and its job fails with a message naming the file as the client sent it."""
+    files = tiny_material(7)
+    files["albedo"] = ("broken_Color.png", png_claiming(64, 64, padding=4096), "image/png")
+    response = submit(service, files, TINY_OPTIONS)
+    assert response.status_code == 202, response.text
+    done = service.wait_finished(response.json()["id"])
+    assert done["state"] == "failed" and "broken_Color.png" in done["error"], done
+    assert "Traceback" not in done["error"] and "/" not in done["error"].split("broken_Color.png")[0]
+
+
+def test_a_job_past_the_wall_clock_limit_stops_and_fails(tmp_path: Path) -> None:
+    environment = BcfEnvironment(tmp_path, heartbeat_s=0.5, job_time_limit_s=3)
+    server = environment.serve(workers=1)
+    try:
+        response = submit(server, tiny_material(8), ENDLESS_OPTIONS)
+        assert response.status_code == 202, response.text
+        done = server.wait_finished(response.json()["id"], timeout=120)
+        assert done["state"] == "failed" and "BCF_JOB_TIME_LIMIT_S" in done["error"], done
+        assert done["progress"]["iteration"] < ENDLESS_OPTIONS["phase1_iterations"]
+        assert server.stored(done["id"]).attempts == 1  # a limit is not a crash: no second run
+    finally:
+        server.stop()
 
 
 def test_without_tokens_the_server_listens_on_loopback_only(tmp_path: Path) -> None:

@@ -22,7 +22,7 @@ from service_harness import BcfEnvironment, Server, material_zip, tiny_material
 
 TOKEN = "secret"
 # Small limits so each can be crossed with a small request.
-LIMITS = {"api_tokens": TOKEN, "max_upload_mb": 1, "max_unzipped_mb": 4, "max_zip_entries": 8}
+LIMITS = {"api_tokens": TOKEN, "max_upload_mb": 1, "max_unzipped_mb": 4, "max_zip_entries": 8, "job_memory_mb": 1024}
 FOLDER = "Chainmail004_1K-PNG"  # material_zip's folder: the job's name
 PUBLIC_JOB_FIELDS = {"id", "state", "name", "options", "inputs", "notes", "progress", "error", "created_at",
                      "updated_at", "started_at", "finished_at", "result"}
@@ -226,6 +226,9 @@ BAD_UPLOADS: dict[str, BadRequest] = {
     "options-seed-overflow": BadRequest(422, ("seed", "less than or equal"), material, options({"seed": 2**64})),
     "options-wild-rate": BadRequest(422, ("lr_features_phase2", "less than or equal"), material,
                                     options({"lr_features_phase2": 1e30})),
+    "over-memory-budget": BadRequest(422, ("64x64", "training batches of 1048576", "more than the budget of 1.0 GiB",
+                                           "BCF_JOB_MEMORY_MB"), material,
+                                     options({"preset": "fast", "phase2_iterations": 1, "batch_size": 2**20})),
     "options-twice": BadRequest(400, ("once",), material, {"options": ['{"preset": "fast"}', "{}"]}),
 }
 

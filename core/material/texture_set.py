@@ -230,16 +230,22 @@ def _flipped_convention_note(path: Path, xy: np.ndarray, convention: str) -> str
             f"further from the slopes of a height map; set the normal convention to {given} if so")
 
 
-def load_texture_set(files: MaterialFiles, name: str | None = None,
-                     max_pixels: int = MAX_TEXTURE_PIXELS) -> TextureSet:
-    """Read and validate the files of `files` into a TextureSet.
+@dataclass(frozen=True)
+class InspectedMaterial:
+    """A material checked from its files' headers alone, no pixel decoded: everything its job record and its
+    result's identity need (`source`: sizes, formats, hashes, the normal convention) and the notes the headers
+    give. `decode_texture_set` turns it into the `TextureSet`."""
 
-    `name` defaults to the albedo file's stem. Checks, in order (all before decoding any pixels except the
-    last two): completeness, readable headers, channel counts per role, at most `max_pixels` per file, equal
-    sizes, power-of-two sizes >= 64, then decodes (truncated or corrupt data is an error) and clips values
-    outside [0, 1] with a note.
-    Missing AO becomes 1 and missing metalness 0 (recorded in `source.defaults`, with a note).
-    """
+    source: MaterialSource
+    paths: dict[Role, Path]
+    notes: tuple[str, ...]
+
+
+def inspect_texture_set(files: MaterialFiles, name: str | None = None,
+                        max_pixels: int = MAX_TEXTURE_PIXELS) -> InspectedMaterial:
+    """Validate the files of `files` from their headers, without decoding pixels: completeness, readable
+    headers, channel counts per role, at most `max_pixels` per file, equal sizes, power-of-two sizes >= 64.
+    Raises MaterialError naming the file. `name` defaults to the albedo file's stem."""
     check_complete(files, None)
     roles = files.roles()
     headers: dict[Role, tuple[Path, _Header]] = {}
@@ -251,36 +257,18 @@ def load_texture_set(files: MaterialFiles, name: str | None = None,
     width, height = _check_sizes(headers)
 
     notes: list[str] = list(files.notes)
-    channels = np.empty((height, width, len(CHANNELS)), dtype=np.float32)
-    for role, (path, header) in headers.items():
-        used = _used_channels(role, path, _read_pixels(path), notes)
-        if not header.bits.startswith("uint"):  # OIIO maps unsigned integers into [0, 1] already: skip the scan
-            used = _clip(path, used, notes)
-        target = TEXTURES[role] if role in TEXTURES else slice(CHANNEL_OF[role], CHANNEL_OF[role] + 1)
-        channels[..., target] = used
-
-    defaults: dict[str, float] = {}
-    if "arm" not in roles:
-        for role, value in DEFAULTS.items():
-            if role not in roles:
-                channels[..., CHANNEL_OF[role]] = value
-                defaults[role] = value
-                notes.append(f"no {role} map: using the constant {value:g}")
-
+    defaults = {} if "arm" in roles else {role: value for role, value in DEFAULTS.items() if role not in roles}
+    notes += [f"no {role} map: using the constant {value:g}" for role, value in defaults.items()]
     convention = files.normal_convention
     if convention is None:
         convention = "opengl"
         notes.append(f"{roles['normal'].name}: normal map convention not known from its name; assuming OpenGL "
                      f"(Y+); set the normal convention to directx if it is DirectX (Y-)")
-    flipped = _flipped_convention_note(roles["normal"], channels[..., TEXTURES["normal"]], convention)
-    if flipped:
-        notes.append(flipped)
     albedo_path, albedo_header = headers["albedo"]
     if albedo_header.format in LINEAR_FORMATS:
         notes.append(f"{albedo_path.name}: albedo in {LINEAR_FORMATS[albedo_header.format]}, which is linear by "
                      "convention; bcf stores, trains on and scores the values as they are (it does not encode them "
                      "to sRGB), so the decoded albedo is linear too")
-
     source = MaterialSource(
         name=name if name is not None else roles["albedo"].stem,
         width=width,
@@ -291,7 +279,40 @@ def load_texture_set(files: MaterialFiles, name: str | None = None,
                           height=h.height, format=h.format, bits=h.bits) for role, (path, h) in headers.items()],
         defaults=defaults,
     )
+    return InspectedMaterial(source=source, paths={role: path for role, (path, _) in headers.items()},
+                             notes=tuple(notes))
+
+
+def decode_texture_set(material: InspectedMaterial) -> TextureSet:
+    """Decode the pixels of an inspected material (truncated or corrupt data is a MaterialError naming the file),
+    clip values outside [0, 1] with a note, fill missing AO / metalness with their constants, and note a normal
+    map whose green channel looks flipped for the convention."""
+    source = material.source
+    notes: list[str] = list(material.notes)
+    channels = np.empty((source.height, source.width, len(CHANNELS)), dtype=np.float32)
+    for described in source.files:
+        path = material.paths[described.role]
+        used = _used_channels(described.role, path, _read_pixels(path), notes)
+        if not described.bits.startswith("uint"):  # OIIO maps unsigned integers into [0, 1] already: skip the scan
+            used = _clip(path, used, notes)
+        role = described.role
+        target = TEXTURES[role] if role in TEXTURES else slice(CHANNEL_OF[role], CHANNEL_OF[role] + 1)
+        channels[..., target] = used
+    for role, value in source.defaults.items():
+        channels[..., CHANNEL_OF[role]] = value
+    flipped = _flipped_convention_note(material.paths["normal"], channels[..., TEXTURES["normal"]],
+                                       source.normal_convention)
+    if flipped:
+        notes.append(flipped)
     return TextureSet(channels=channels, source=source, notes=tuple(notes))
+
+
+def load_texture_set(files: MaterialFiles, name: str | None = None,
+                     max_pixels: int = MAX_TEXTURE_PIXELS) -> TextureSet:
+    """Read and validate the files of `files` into a TextureSet: `inspect_texture_set` (headers, before any pixel
+    is decoded), then `decode_texture_set`. Missing AO becomes 1 and missing metalness 0 (recorded in
+    `source.defaults`, with a note)."""
+    return decode_texture_set(inspect_texture_set(files, name, max_pixels))
 
 
 def load_material(directory: Path | None, explicit: MaterialFiles | None = None,
