@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import OpenImageIO as oiio
 import pytest
 
 from bcf.core import load_export
@@ -102,6 +103,24 @@ def test_the_api_reads_headers_only_and_a_file_that_does_not_decode_fails_its_jo
     done = service.wait_finished(response.json()["id"])
     assert done["state"] == "failed" and "broken_Color.png" in done["error"], done
     assert "Traceback" not in done["error"] and "/" not in done["error"].split("broken_Color.png")[0]
+
+
+def test_what_the_worker_finds_in_the_pixels_joins_the_jobs_notes(service: Any, tmp_path: Path) -> None:
+    """An EXR albedo: the API notes from its header that it is linear; the worker, decoding it, that values
+    above 1 were clipped."""
+    files = tiny_material(9)
+    bright = np.full((64, 64, 3), 1.5, dtype=np.float32)
+    image = oiio.ImageBuf(oiio.ImageSpec(64, 64, 3, oiio.HALF))
+    image.set_pixels(oiio.ROI(0, 64, 0, 64), bright)
+    assert image.write(str(tmp_path / "bright.exr")), image.geterror()
+    files["albedo"] = ("bright_Color.exr", (tmp_path / "bright.exr").read_bytes(), "image/x-exr")
+    response = submit(service, files, TINY_OPTIONS)
+    assert response.status_code == 202, response.text
+    assert any("linear" in note for note in response.json()["notes"])
+    assert not any("clipped" in note for note in response.json()["notes"])  # no pixel decoded yet
+    done = service.wait_finished(response.json()["id"])
+    assert done["state"] == "succeeded", done["error"]
+    assert any("bright_Color.exr" in note and "12288 values outside [0, 1] clipped" in note for note in done["notes"])
 
 
 def test_a_job_past_the_wall_clock_limit_stops_and_fails(tmp_path: Path) -> None:
