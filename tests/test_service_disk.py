@@ -91,6 +91,7 @@ def test_a_disk_that_fills_while_uploads_are_stored_answers_507_json(tmp_path: P
 def purge_and_expire(environment: BcfEnvironment, server: Server, variant: int) -> None:
     """A succeeded job without its inputs; purged: a tombstone whose results answer 410 and whose material may
     be submitted again; that new job, finished "two days ago", expired by the workers (BCF_RETENTION_DAYS=1)."""
+    purged_before = metric(server, "bcf_jobs_purged")
     job = submit(server, tiny_material(variant), TINY_OPTIONS).json()
     done = server.wait_finished(job["id"])
     assert done["state"] == "succeeded", done["error"]
@@ -115,7 +116,7 @@ def purge_and_expire(environment: BcfEnvironment, server: Server, variant: int) 
     expired = server.wait_for_job(rerun["id"], lambda j: j["purged_at"] is not None, 30, "to expire")
     assert expired["state"] == "succeeded" and expired["result"]["artifacts"] == []
     assert files_of(environment, rerun["id"]) == {"inputs": False, "artifacts": False}
-    assert metric(server, "bcf_jobs_purged") == 2
+    assert metric(server, "bcf_jobs_purged") == purged_before + 2
 
 
 def test_ended_jobs_lose_their_inputs_and_finished_ones_are_purged_or_expire(tmp_path: Path) -> None:
@@ -129,6 +130,10 @@ def test_ended_jobs_lose_their_inputs_and_finished_ones_are_purged_or_expire(tmp
         cancelled = server.client.delete(f"/v1/jobs/{queued['id']}")
         assert cancelled.status_code == 200 and cancelled.json()["state"] == "cancelled", cancelled.text
         assert files_of(environment, queued["id"]) == {"inputs": False, "artifacts": False}
+        waiting = submit(server, tiny_material(5), ENDLESS_OPTIONS).json()
+        purged = server.client.delete(f"/v1/jobs/{waiting['id']}", params={"purge": "true"})  # cancelled, purged
+        assert purged.status_code == 200 and purged.json()["state"] == "cancelled", purged.text
+        assert purged.json()["purged_at"] is not None and not files_of(environment, waiting["id"])["inputs"]
 
         assert_json_error(server.client.delete(f"/v1/jobs/{running['id']}", params={"purge": "true"}), 409,
                           "running", "cancel")
