@@ -9,7 +9,9 @@ jobs whose worker stopped sending heartbeats and queued jobs whose message is mi
 from __future__ import annotations
 
 import datetime
+import logging
 import shutil
+import sqlite3
 import tempfile
 import zipfile
 from pathlib import Path
@@ -18,13 +20,14 @@ from typing import Callable, Optional
 from huey import Huey, RedisHuey, SqliteHuey
 
 from bcf.core import staging_leftovers
-from bcf.jobs.records import Job, utc_now
+from bcf.jobs.records import FINAL_STATES, Job, utc_now
 from bcf.jobs.settings import Settings
-from bcf.jobs.store import JobStore, open_store
+from bcf.jobs.store import JobStore, StoreUnavailable, open_store, sqlite_failure
 
 __all__ = ["JobQueue", "RUN_JOB_TASK"]
 
 RUN_JOB_TASK = "bcf.run_job"
+log = logging.getLogger("bcf.queue")
 JobRunner = Callable[[str], None]
 
 
@@ -47,13 +50,21 @@ class JobQueue:
         self._task = self.huey.task(name=RUN_JOB_TASK)(runner or _submitting_only)
 
     def enqueue(self, job_id: str) -> None:
-        self._task(job_id)
+        """Send the job's message; StoreUnavailable (StoreFull: its disk is full) if the SQLite queue fails."""
+        try:
+            self._task(job_id)
+        except sqlite3.OperationalError as exc:
+            raise sqlite_failure(exc, self.settings.data_dir / "queue.db") from exc
 
     def submit(self, job: Job) -> tuple[Job, bool]:
         """Store and enqueue `job`, or return the existing job with the same input key: (job, created)."""
         stored, created = self.store.add(job)
         if created:
-            self.enqueue(stored.id)  # if this fails, `recover` finds the queued job without a message
+            try:
+                self.enqueue(stored.id)
+            except StoreUnavailable as exc:  # the job is stored: `recover` finds it without a message, sends one
+                log.warning("job %s: stored, but its queue message was not sent (a recovery pass will): %s",
+                            stored.id, exc)
         return stored, created
 
     def cancel(self, job_id: str) -> Optional[Job]:
@@ -66,7 +77,10 @@ class JobQueue:
                 return job.model_copy(update={"cancel_requested": True})
             return None
 
-        return self.store.update(job_id, change)
+        job = self.store.update(job_id, change)
+        if job is not None:
+            self.remove_inputs(job)
+        return job
 
     def pending_messages(self) -> int:
         return self.huey.pending_count()
@@ -84,6 +98,7 @@ class JobQueue:
                 if after is not None and after.state != "running":
                     if after.state == "queued":
                         self.enqueue(after.id)
+                    self.remove_inputs(after)
                     changed.append(after)
         queued, _ = self.store.list({"queued"})
         if queued:
@@ -127,6 +142,34 @@ class JobQueue:
             Path(handle.name).unlink(missing_ok=True)
             raise
         return Path(handle.name)
+
+    def remove_inputs(self, job: Job) -> None:
+        """The inputs of a job that ended (its outcome stored): no run needs them again, and a resubmission
+        uploads them anew. Jobs still queued or running keep theirs."""
+        if job.state in FINAL_STATES:
+            shutil.rmtree(self.inputs_path(job.id), ignore_errors=True)
+
+    def purge(self, job_id: str) -> Optional[Job]:
+        """Remove a finished job's inputs and artifacts, keeping its record as a tombstone (`purged_at`). The
+        record changes first, so no download starts on files about to go. Jobs not finished are unchanged."""
+        def change(job: Job) -> Optional[Job]:
+            return job.tombstone() if job.state in FINAL_STATES and job.purged_at is None else None
+
+        job = self.store.update(job_id, change)
+        if job is not None and job.purged_at is not None:
+            shutil.rmtree(self.inputs_path(job.id), ignore_errors=True)
+            shutil.rmtree(self.artifacts_path(job.id), ignore_errors=True)
+        return job
+
+    def expire(self) -> list[Job]:
+        """Purge the jobs that finished more than `retention_days` ago (none without retention)."""
+        if self.settings.retention_days is None:
+            return []
+        threshold = utc_now() - datetime.timedelta(days=self.settings.retention_days)
+        finished, _ = self.store.list(set(FINAL_STATES))
+        expired = [job.id for job in finished
+                   if job.purged_at is None and job.finished_at is not None and job.finished_at < threshold]
+        return [job for job in map(self.purge, expired) if job is not None and job.purged_at is not None]
 
     def remove_partial_outputs(self, job_id: str) -> None:
         """Staging folders a killed worker left for this job's artifacts."""

@@ -82,6 +82,9 @@ class JobView(BaseModel):
     started_at: Optional[datetime.datetime] = None
     finished_at: Optional[datetime.datetime] = None
     result: Optional[JobResult] = None
+    purged_at: Optional[datetime.datetime] = Field(
+        None, description="when the job's inputs and result files were removed (DELETE /v1/jobs/{id}?purge=true, "
+                          "or BCF_RETENTION_DAYS after it finished); the record stays as a tombstone")
 
 
 class Job(JobView, _Model):
@@ -106,6 +109,11 @@ class Job(JobView, _Model):
         """Back in the queue for any worker: its worker stopped, died or gave it back."""
         return self.model_copy(update={"state": "queued", "worker": None, "started_at": None, "error": None,
                                        "progress": JobProgress(stage="queued")})
+
+    def tombstone(self) -> "Job":
+        """The record of a finished job whose files are removed: headline numbers kept, no artifacts listed."""
+        result = self.result.model_copy(update={"artifacts": []}) if self.result else None
+        return self.model_copy(update={"purged_at": utc_now(), "result": result})
 
     @property
     def duration_s(self) -> Optional[float]:

@@ -49,6 +49,12 @@ class Settings(BaseSettings):
     heartbeat_s: float = Field(2.0, gt=0, description="how often a running job's record is refreshed")
     stale_after_s: float = Field(30.0, gt=0, description="a running job whose record is this old has lost "
                                                          "its worker and is re-queued")
+    min_free_disk_mb: float = Field(1024.0, ge=0, description="free space (MiB) the data directory's disk keeps: "
+                                    "uploads that would leave less are refused with 507 and /readyz is not ready; "
+                                    "0: no floor")
+    retention_days: Optional[float] = Field(None, gt=0, description="days a finished job keeps its inputs and "
+                                            "results; then its files are removed and the record kept as a "
+                                            "tombstone; none: kept until purged")
 
     @field_validator("api_tokens", mode="before")
     @classmethod
@@ -92,6 +98,10 @@ class Settings(BaseSettings):
     @property
     def farm_mode(self) -> bool:
         return self.queue_url is not None
+
+    @property
+    def min_free_disk_bytes(self) -> int:
+        return int(self.min_free_disk_mb * 2**20)
 
     @property
     def uploads_dir(self) -> Path:

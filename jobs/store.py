@@ -9,6 +9,7 @@ record and returns the new one, or None to leave it alone.
 from __future__ import annotations
 
 import contextlib
+import shutil
 import sqlite3
 import uuid
 from pathlib import Path
@@ -17,15 +18,42 @@ from typing import Callable, Iterator, Optional, Protocol
 from bcf.jobs.records import DEFAULT_TENANT, JOB_STATES, Job, utc_now
 from bcf.jobs.settings import Settings
 
-__all__ = ["JobStore", "RedisJobStore", "SqliteJobStore", "StoreUnavailable", "open_store"]
+__all__ = ["JobStore", "RedisJobStore", "SqliteJobStore", "StoreFull", "StoreUnavailable", "free_disk_bytes",
+           "open_store", "sqlite_failure"]
 
 Change = Callable[[Job], Optional[Job]]
-# Jobs that hold their input key: a new submission with the same key returns them instead of a new job.
+# Jobs that hold their input key: a new submission with the same key returns them instead of a new job
+# (unless purged: a tombstone has no results to return).
 _KEY_HOLDING_STATES = frozenset({"queued", "running", "succeeded"})
 
 
 class StoreUnavailable(RuntimeError):
     """The job store cannot be reached (Redis down, database locked for too long)."""
+
+
+class StoreFull(StoreUnavailable):
+    """The job database cannot grow: its disk is full."""
+
+
+# SQLite reports a full disk as SQLITE_FULL, or while growing its WAL index as an I/O error: one with less than
+# this free on the database's disk is taken for a full disk.
+_NEARLY_FULL_BYTES = 1 << 20
+
+
+def free_disk_bytes(folder: Path) -> int:
+    """Free space on the disk of `folder`, or of its nearest existing parent (the data directory is made later)."""
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    return shutil.disk_usage(folder).free
+
+
+def sqlite_failure(exc: sqlite3.OperationalError, path: Path) -> StoreUnavailable:
+    """`exc` of the SQLite database `path` as StoreFull when its disk is full, else as StoreUnavailable."""
+    code = exc.sqlite_errorcode & 0xFF  # the primary code: extended codes add detail in the high bits
+    if code == sqlite3.SQLITE_FULL or (code == sqlite3.SQLITE_IOERR and
+                                       free_disk_bytes(path.parent) < _NEARLY_FULL_BYTES):
+        return StoreFull(f"database {path}: the disk is full ({exc}); free space on BCF_DATA_DIR's disk")
+    return StoreUnavailable(f"job database {path}: {exc}")
 
 
 class JobStore(Protocol):
@@ -76,7 +104,7 @@ class SqliteJobStore:
             if write:
                 db.execute("COMMIT")  # not reached on an exception: closing rolls the transaction back
         except sqlite3.OperationalError as exc:
-            raise StoreUnavailable(f"job database {self.path}: {exc}") from exc
+            raise sqlite_failure(exc, self.path) from exc
         finally:
             db.close()
 
@@ -84,7 +112,8 @@ class SqliteJobStore:
         with self._connect(write=True) as db:
             holding = ",".join("?" * len(_KEY_HOLDING_STATES))
             row = db.execute(f"SELECT data FROM jobs WHERE input_key = ? AND state IN ({holding}) "
-                             "ORDER BY created_at DESC LIMIT 1", (job.input_key, *_KEY_HOLDING_STATES)).fetchone()
+                             "AND json_extract(data, '$.purged_at') IS NULL ORDER BY created_at DESC LIMIT 1",
+                             (job.input_key, *_KEY_HOLDING_STATES)).fetchone()
             if row is not None:
                 return Job.model_validate_json(row[0]), False
             db.execute("INSERT INTO jobs (id, input_key, state, created_at, data) VALUES (?, ?, ?, ?, ?)",
@@ -168,7 +197,7 @@ class RedisJobStore:
                 raw = pipe.get(self._name("job", holder.decode()))
                 if raw is not None:
                     existing = Job.model_validate_json(raw)
-                    if existing.state in _KEY_HOLDING_STATES:
+                    if existing.state in _KEY_HOLDING_STATES and existing.purged_at is None:
                         pipe.unwatch()
                         return existing, False
             score = job.created_at.timestamp()

@@ -110,6 +110,13 @@ class Worker:
             return change(job) if job.state == "running" and job.worker == self.id else None
         return self.queue.store.update(job_id, held)
 
+    def _end_held(self, job_id: str, change: Callable[[Job], Job]) -> Optional[Job]:
+        """Store a held job's outcome; once it is stored, the job's inputs are no longer needed."""
+        job = self._update_held(job_id, change)
+        if job is not None:
+            self.queue.remove_inputs(job)
+        return job
+
     def release(self, job_id: str) -> None:
         """Give a job this worker holds back to the queue (shutdown): another worker restarts it."""
         job = self._update_held(job_id, Job.requeued)
@@ -161,18 +168,18 @@ class Worker:
                 if self.stopping() and not monitor.cancel.is_set():
                     self.release(job.id)
                     return
-                self._update_held(job.id, lambda held: held.ended("cancelled", monitor.progress))
+                self._end_held(job.id, lambda held: held.ended("cancelled", monitor.progress))
                 log.info("job %s: cancelled", job.id)
                 return
             except Exception as exc:  # any failure of one job is that job's, not the worker's
                 message = failure_text(exc, file=lambda path: Path(path).name)  # never server paths
-                self._update_held(job.id, lambda held: held.ended("failed", monitor.progress, error=message))
+                self._end_held(job.id, lambda held: held.ended("failed", monitor.progress, error=message))
                 log.error("job %s: failed: %s\n%s", job.id, message, traceback.format_exc())
                 return
         artifacts = sorted(str(p.relative_to(output)) for p in output.rglob("*") if p.is_file())
         result = JobResult(psnr=report.aggregate.psnr.all, ssim=report.aggregate.ssim.all, artifacts=artifacts,
                            size_bytes=report.size.total_bytes, bits_per_texel=report.size.bits_per_texel)
-        done = self._update_held(job.id, lambda held: held.ended("succeeded", monitor.progress, result=result))
+        done = self._end_held(job.id, lambda held: held.ended("succeeded", monitor.progress, result=result))
         if done is not None and done.state == "succeeded":
             log.info("job %s: succeeded in %.1f s, %.2f dB", job.id, time.perf_counter() - started,
                      report.aggregate.psnr.all)
@@ -196,6 +203,8 @@ class Worker:
         try:
             for job in self.queue.recover():
                 log.info("job %s: recovered -> %s", job.id, job.state)
+            for job in self.queue.expire():
+                log.info("job %s: files removed, finished more than BCF_RETENTION_DAYS ago", job.id)
         except StoreUnavailable as exc:
             log.warning("recovery pass skipped: %s", exc)
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import secrets
-import shutil
 from pathlib import Path
 from typing import Annotated, Any, Callable, Literal, Optional
 
@@ -19,7 +18,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
-from pydantic import BaseModel
+from pydantic import BaseModel, Field
 from starlette.background import BackgroundTask
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
@@ -27,10 +26,10 @@ from bcf.core import REPORT_FILE, __version__
 from bcf.jobs.queue import JobQueue
 from bcf.jobs.records import DEFAULT_TENANT, FINAL_STATES, Job, JobState, JobView
 from bcf.jobs.settings import Settings
-from bcf.jobs.store import StoreUnavailable
+from bcf.jobs.store import StoreUnavailable, free_disk_bytes
 from bcf.jobs.supervisor import WorkerStatus
 from bcf.service.metrics import prometheus_text
-from bcf.service.uploads import Upload, read_upload, submit_upload
+from bcf.service.uploads import DiskFull, Upload, read_upload, submit_upload
 
 __all__ = ["JobList", "create_app", "gated"]
 
@@ -47,6 +46,23 @@ class _BodyTooLarge(Exception):
     pass
 
 
+class Refusals(BaseModel):
+    """Requests refused by this server process since it started, for /metrics (kept in `app.state`)."""
+
+    disk: int = Field(0, description="uploads refused for lack of disk space (507)")
+
+
+def disk_floor_message(settings: Settings, free: int, needed: int = 0) -> Optional[str]:
+    """Why an upload of `needed` bytes is refused, if storing it would leave less than BCF_MIN_FREE_DISK_MB free."""
+    floor = settings.min_free_disk_bytes
+    if floor == 0 or free - needed >= floor:
+        return None
+    return (f"not enough disk space for the upload: {free / 2**20:.0f} MiB free on the data directory's disk"
+            + (f", {needed / 2**20:.1f} MiB needed" if needed else "")
+            + f", and {settings.min_free_disk_mb:.0f} MiB must stay free (BCF_MIN_FREE_DISK_MB); retry once "
+              "jobs are purged (DELETE /v1/jobs/{id}?purge=true) or expire (BCF_RETENTION_DAYS)")
+
+
 def token_accepted(given: str, tokens: list[str]) -> bool:
     """One of `tokens`, compared in constant time (the gate and the app's dependency both ask this)."""
     return any(secrets.compare_digest(given.encode(), t.encode()) for t in tokens)
@@ -60,11 +76,13 @@ async def _send_error(send: Send, status: int, detail: str, headers: Optional[li
 
 class RequestGate:
     """The bearer token (401), then the body size (413) by Content-Length and by counting as it streams in
-    (chunked uploads). Here, not in a FastAPI dependency: FastAPI reads and parses a form before it runs any
-    dependency."""
+    (chunked uploads), and for uploads the free disk space (507, `disk_floor_message`). Here, not in a FastAPI
+    dependency: FastAPI reads and parses a form before it runs any dependency."""
 
-    def __init__(self, app: ASGIApp, settings: Settings):
+    def __init__(self, app: ASGIApp, settings: Settings, refusals: Optional[Refusals] = None):
         self.app = app
+        self.settings = settings
+        self.refusals = refusals or Refusals()
         self.tokens = list(settings.token_tenants())
         self.limit = int(settings.max_upload_mb * 2**20)
         self.too_large = f"request body larger than the limit of {settings.max_upload_mb:.0f} MiB (BCF_MAX_UPLOAD_MB)"
@@ -83,6 +101,13 @@ class RequestGate:
         if length is not None and length.isdigit() and int(length) > self.limit:
             await _send_error(send, 413, self.too_large)
             return
+        if scope["method"] == "POST" and scope["path"] == "/v1/jobs":
+            needed = int(length) if length is not None and length.isdigit() else 0
+            refused = disk_floor_message(self.settings, free_disk_bytes(self.settings.data_dir), needed)
+            if refused:
+                self.refusals.disk += 1
+                await _send_error(send, 507, refused)
+                return
         seen = 0
         started = rejected = False
 
@@ -123,6 +148,10 @@ def get_queue(request: Request) -> JobQueue:
     return request.app.state.queue
 
 
+def get_refusals(request: Request) -> Refusals:
+    return request.app.state.refusals
+
+
 def get_workers(request: Request) -> Optional[WorkerStatus]:
     """The supervised workers' status, or None where `bcf serve` starts none (farm mode: `bcf worker`s)."""
     status = request.app.state.workers
@@ -132,6 +161,7 @@ def get_workers(request: Request) -> Optional[WorkerStatus]:
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 QueueDep = Annotated[JobQueue, Depends(get_queue)]
 WorkersDep = Annotated[Optional[WorkerStatus], Depends(get_workers)]
+RefusalsDep = Annotated[Refusals, Depends(get_refusals)]
 _bearer = HTTPBearer(auto_error=False, description="one of BCF_API_TOKENS")
 
 
@@ -169,6 +199,9 @@ def succeeded_job(job: StoredJob) -> Job:
     if job.state != "succeeded":
         raise HTTPException(409, f"job {job.id} is {job.state}; results exist once it has succeeded"
                             + (f" (error: {job.error})" if job.error else ""))
+    if job.purged_at is not None:
+        raise HTTPException(410, f"job {job.id}'s files were removed at {job.purged_at.isoformat()} (purged, or "
+                                 "older than BCF_RETENTION_DAYS); submit the material again to recompute them")
     return job
 
 
@@ -196,11 +229,14 @@ _ERRORS = {400: "a malformed form: an unknown or repeated field, both a zip and 
            401: "missing or wrong bearer token",
            404: "no such job, or no such artifact of the job",
            409: "the job is not in a state that allows this (results before it succeeded, cancelling a finished "
-                "job)",
+                "job, purging a running one)",
+           410: "the job's files were removed (purged, or expired after BCF_RETENTION_DAYS); its record remains",
            413: "upload over BCF_MAX_UPLOAD_MB, or a material zip over BCF_MAX_UNZIPPED_MB",
            415: "a file is not an accepted image, or the material not a zip",
            422: "a parameter, the options or the material cannot be used",
-           503: "the job store does not answer; retry after Retry-After seconds"}
+           503: "the job store does not answer; retry after Retry-After seconds",
+           507: "not enough disk space: the upload would leave less than BCF_MIN_FREE_DISK_MB free, or the disk "
+                "filled while it was stored"}
 
 
 def _errors(*codes: int) -> dict[int | str, dict[str, Any]]:
@@ -222,42 +258,51 @@ def healthz(settings: SettingsDep, queue: QueueDep) -> dict[str, str]:
 class Readiness(BaseModel):
     ready: bool
     store: Literal["ok", "unavailable"]
+    disk: Literal["ok", "low"]  # low: less than BCF_MIN_FREE_DISK_MB free, uploads are refused
     disk_free_bytes: int  # on the data folder's file system
     workers: Optional[WorkerStatus]  # None where this server starts no workers (farm mode)
 
 
 @open_routes.get("/readyz", tags=["service"], response_model=Readiness,
                  responses={503: {"model": Readiness, "description": "not ready: the job store does not answer, "
+                                                                      "less than BCF_MIN_FREE_DISK_MB is free, "
                                                                       "or none of this server's workers runs"}})
 def readyz(settings: SettingsDep, queue: QueueDep, workers: WorkersDep, response: Response) -> Readiness:
-    """Readiness for an orchestrator (no token needed): the job store answers and, where this server supervises
-    workers, at least one runs. 503 otherwise, with the same body."""
+    """Readiness for an orchestrator (no token needed): the job store answers, the data directory's disk has
+    BCF_MIN_FREE_DISK_MB free and, where this server supervises workers, at least one runs. 503 otherwise, with
+    the same body."""
     try:
         queue.store.ping()
         store: Literal["ok", "unavailable"] = "ok"
     except StoreUnavailable:
         store = "unavailable"
-    free = shutil.disk_usage(settings.data_dir).free if settings.data_dir.exists() else 0
-    ready = store == "ok" and (workers is None or workers.live > 0)
+    free = free_disk_bytes(settings.data_dir)
+    disk: Literal["ok", "low"] = "low" if disk_floor_message(settings, free) else "ok"
+    ready = store == "ok" and disk == "ok" and (workers is None or workers.live > 0)
     response.status_code = 200 if ready else 503
-    return Readiness(ready=ready, store=store, disk_free_bytes=free, workers=workers)
+    return Readiness(ready=ready, store=store, disk=disk, disk_free_bytes=free, workers=workers)
 
 
 @routes.get("/metrics", tags=["service"], response_class=PlainTextResponse)
-def metrics(queue: QueueDep, workers: WorkersDep) -> PlainTextResponse:
-    """Prometheus text format: jobs by state, queue depth, job durations, supervised workers and restarts."""
-    return PlainTextResponse(prometheus_text(queue, workers), media_type="text/plain; version=0.0.4")
+def metrics(queue: QueueDep, workers: WorkersDep, refusals: RefusalsDep) -> PlainTextResponse:
+    """Prometheus text format: jobs by state, purged jobs, queue depth, job durations, free disk space, uploads
+    refused for disk space, supervised workers and restarts."""
+    return PlainTextResponse(prometheus_text(queue, workers, refusals.disk), media_type="text/plain; version=0.0.4")
 
 
 @routes.post("/v1/jobs", tags=["jobs"], status_code=202, response_model=JobView,
              responses={200: {"model": JobView,
                               "description": "the same inputs and options were submitted before: that job"},
-                        **_errors(400, 413, 415, 422)})
+                        **_errors(400, 413, 415, 422, 507)})
 async def submit(upload: Annotated[Upload, Depends(read_upload)], queue: QueueDep, tenant: Tenant,
-                 response: Response) -> Job:
+                 refusals: RefusalsDep, response: Response) -> Job:
     """Submit a material: files per role, or a zip. 202 with the new job, or 200 with the existing job when
     the same files and options were submitted before (and did not fail)."""
-    job, created = await run_in_threadpool(submit_upload, queue, upload, tenant or DEFAULT_TENANT)
+    try:
+        job, created = await run_in_threadpool(submit_upload, queue, upload, tenant or DEFAULT_TENANT)
+    except DiskFull as exc:
+        refusals.disk += 1
+        raise HTTPException(507, str(exc)) from None
     response.status_code, response.headers["Location"] = 202 if created else 200, f"/v1/jobs/{job.id}"
     return job
 
@@ -280,24 +325,37 @@ def get_job(job: StoredJob) -> Job:
 @routes.delete("/v1/jobs/{job_id}", tags=["jobs"], response_model=JobView,
                responses={202: {"model": JobView, "description": "running: it stops within a heartbeat or two"},
                           **_errors(404, 409, 422)})
-def cancel_job(job: StoredJob, queue: QueueDep, response: Response) -> Job:
-    """Cancel: a queued job at once (200), a running one within a few seconds (202; watch its state)."""
-    job = queue.cancel(job.id) or job  # None only for a job that vanished meanwhile: jobs are never deleted
-    if job.state in FINAL_STATES and job.state != "cancelled":
-        raise HTTPException(409, f"job {job.id} already {job.state}; nothing to cancel")
-    response.status_code = 200 if job.state == "cancelled" else 202
+def cancel_job(job: StoredJob, queue: QueueDep, response: Response,
+               purge: Annotated[bool, Query(description="also remove the job's inputs and result files, keeping "
+                                                        "its record (a finished or queued job; not a running one)")
+                                ] = False) -> Job:
+    """Cancel: a queued job at once (200), a running one within a few seconds (202; watch its state). With
+    `purge=true`: remove a finished (or queued: cancelled first) job's files, keeping the record (200)."""
+    if purge and job.state == "running":
+        raise HTTPException(409, f"job {job.id} is running; cancel it (DELETE without purge), then purge it once "
+                                 "it is cancelled")
+    if not (purge and job.state in FINAL_STATES):
+        job = queue.cancel(job.id) or job  # None only for a job that vanished meanwhile: jobs are never deleted
+        if job.state in FINAL_STATES and job.state != "cancelled":
+            raise HTTPException(409, f"job {job.id} already {job.state}; nothing to cancel")
+    if purge:
+        job = queue.purge(job.id) or job
+        if job.purged_at is None:  # a worker took it between the two steps: cancelling, not purged
+            raise HTTPException(409, f"job {job.id} started running; it is being cancelled: purge it once it is "
+                                     "cancelled")
+    response.status_code = 200 if job.state in FINAL_STATES else 202
     return job
 
 
 @routes.get("/v1/jobs/{job_id}/report", tags=["results"], response_class=FileResponse,
-            responses=_errors(404, 409, 422))
+            responses=_errors(404, 409, 410, 422))
 def get_report(job: SucceededJob, queue: QueueDep) -> FileResponse:
     """The job's report.json (the schema is in docs/FORMAT.md)."""
     return FileResponse(queue.artifacts_path(job.id) / REPORT_FILE, media_type="application/json")
 
 
 @routes.get("/v1/jobs/{job_id}/artifacts", tags=["results"], response_class=FileResponse,
-            responses=_errors(404, 409, 422))
+            responses=_errors(404, 409, 410, 422))
 def get_artifacts(job: SucceededJob, queue: QueueDep, settings: SettingsDep) -> FileResponse:
     """Every result file as one zip (features_*.dds, decoder.bin, manifest.json, report.json, report.html,
     baselines/...)."""
@@ -307,7 +365,7 @@ def get_artifacts(job: SucceededJob, queue: QueueDep, settings: SettingsDep) -> 
 
 
 @routes.get("/v1/jobs/{job_id}/artifacts/{name:path}", tags=["results"], response_class=FileResponse,
-            responses=_errors(404, 409, 422))
+            responses=_errors(404, 409, 410, 422))
 def get_artifact(job: SucceededJob, name: str, queue: QueueDep) -> FileResponse:
     """One result file by its name in the job's `result.artifacts`."""
     artifacts = job.result.artifacts if job.result else []
@@ -336,6 +394,7 @@ def create_app(settings: Settings, workers: Optional[Callable[[], WorkerStatus]]
                   description="Neural block-compressed features (BC6H) for PBR materials: submit a texture set, "
                               "get BC6H feature textures, MLP weights and a quality report.")
     app.state.settings, app.state.queue, app.state.workers = settings, JobQueue(settings), workers
+    app.state.refusals = Refusals()
     app.add_exception_handler(StoreUnavailable, _store_down)  # type: ignore[arg-type]
     app.add_exception_handler(RequestValidationError, _invalid)  # type: ignore[arg-type]
     app.include_router(open_routes)
@@ -360,5 +419,6 @@ def _errors_as_json(app: FastAPI) -> dict[str, Any]:
 
 
 def gated(app: FastAPI, settings: Settings) -> ASGIApp:
-    """The app as uvicorn runs it: with the token check and the upload limit in front (`RequestGate`)."""
-    return RequestGate(app, settings)
+    """The app as uvicorn runs it: with the token check, the upload limit and the disk floor in front
+    (`RequestGate`), counting its refusals where the app's /metrics reads them."""
+    return RequestGate(app, settings, app.state.refusals)

@@ -8,6 +8,7 @@ nothing behind. Role files are staged as `<role>/<name>`, zip images by base nam
 
 from __future__ import annotations
 
+import errno
 import re
 import stat
 import tempfile
@@ -23,9 +24,10 @@ from bcf.core import IMAGE_EXTENSIONS, ROLES, InputError, JobOptions
 from bcf.jobs.queue import JobQueue
 from bcf.jobs.records import Job
 from bcf.jobs.settings import Settings
+from bcf.jobs.store import StoreFull
 from bcf.jobs.submission import StagedMaterial, submit_material
 
-__all__ = ["Upload", "client_message", "read_upload", "submit_upload"]
+__all__ = ["DiskFull", "Upload", "client_message", "read_upload", "submit_upload"]
 
 FORM_FIELDS = (*ROLES, "material", "options")
 ACCEPTED_FORMATS = "PNG, JPEG, EXR, TIFF or TGA"
@@ -34,6 +36,11 @@ _SIGNATURES = ((b"\x89PNG\r\n\x1a\n", (".png",)), (b"\xff\xd8\xff", (".jpg", ".j
                (b"\x76\x2f\x31\x01", (".exr",)), (b"II*\x00", (".tif", ".tiff")), (b"MM\x00*", (".tif", ".tiff")))
 _COPY_CHUNK = 1 << 20
 Upload = tuple[dict[str, UploadFile], JobOptions]  # the files by form field (a role, or "material"), the options
+_DISK_FULL = (errno.ENOSPC, errno.EDQUOT)
+
+
+class DiskFull(Exception):
+    """The data directory's disk filled while an upload was stored (the app answers 507)."""
 
 
 async def read_upload(request: Request,
@@ -196,7 +203,20 @@ def client_message(exc: InputError, staged: StagedMaterial) -> str:
 
 def submit_upload(queue: JobQueue, upload: Upload, tenant: str) -> tuple[Job, bool]:
     """Stage the upload, then submit it (`bcf.jobs.submission.submit_material`): (job, created). HTTPException for
-    anything the client must fix; the staging folder is removed either way (the job's inputs moved out)."""
+    anything the client must fix, DiskFull when the disk fills meanwhile; the staging folder is removed either
+    way (the job's inputs moved out)."""
+    try:
+        return _staged_and_submitted(queue, upload, tenant)
+    except StoreFull as exc:
+        raise DiskFull(f"the job store's disk is full: {exc}") from None
+    except OSError as exc:
+        if exc.errno not in _DISK_FULL:
+            raise
+        raise DiskFull("the data directory's disk filled while the upload was stored (nothing was kept); free "
+                       "space, and keep some free with BCF_MIN_FREE_DISK_MB") from None
+
+
+def _staged_and_submitted(queue: JobQueue, upload: Upload, tenant: str) -> tuple[Job, bool]:
     uploads = queue.settings.uploads_dir
     uploads.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix="upload-", dir=uploads, ignore_cleanup_errors=True) as staging:

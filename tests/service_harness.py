@@ -100,8 +100,10 @@ class BcfEnvironment:
         (attempts, the worker, cancel requests)."""
         return open_store(Settings(_env_file=None, data_dir=self.data_dir, queue_url=self.env.get("BCF_QUEUE_URL")))
 
-    def serve(self, port: Optional[int] = None, workers: int = 0, *extra: str) -> "Server":
-        return Server(self, port or free_port(), workers, extra)
+    def serve(self, port: Optional[int] = None, workers: int = 0, *extra: str,
+              wrapper: tuple[str, ...] = ()) -> "Server":
+        """`bcf serve`, run by `wrapper` (a command that ends by running its arguments) where one is given."""
+        return Server(self, port or free_port(), workers, extra, wrapper)
 
     def worker(self, *extra: str) -> Process:
         process = Process([*BCF, "worker", *extra], self.env, self.root, self._log("worker"))
@@ -112,9 +114,10 @@ class BcfEnvironment:
 
 
 class Server(Process):
-    def __init__(self, environment: BcfEnvironment, port: int, workers: int, extra: tuple[str, ...]):
-        super().__init__([*BCF, "serve", "--port", str(port), "--workers", str(workers), *extra], environment.env,
-                         environment.root, environment._log("serve"))
+    def __init__(self, environment: BcfEnvironment, port: int, workers: int, extra: tuple[str, ...],
+                 wrapper: tuple[str, ...] = ()):
+        super().__init__([*wrapper, *BCF, "serve", "--port", str(port), "--workers", str(workers), *extra],
+                         environment.env, environment.root, environment._log("serve"))
         self.environment = environment
         self.url = f"http://127.0.0.1:{port}"
         token = environment.env.get("BCF_API_TOKENS", "").split(",")[0].rpartition(":")[2]  # tenant:token

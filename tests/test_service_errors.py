@@ -25,7 +25,7 @@ TOKEN = "secret"
 LIMITS = {"api_tokens": TOKEN, "max_upload_mb": 1, "max_unzipped_mb": 4, "max_zip_entries": 8, "job_memory_mb": 1024}
 FOLDER = "Chainmail004_1K-PNG"  # material_zip's folder: the job's name
 PUBLIC_JOB_FIELDS = {"id", "state", "name", "options", "inputs", "notes", "progress", "error", "created_at",
-                     "updated_at", "started_at", "finished_at", "result"}
+                     "updated_at", "started_at", "finished_at", "result", "purged_at"}
 Files = dict[str, tuple[str, bytes, str]]
 
 
@@ -370,13 +370,13 @@ def test_openapi_and_docs_are_served(accepting: Service) -> None:
 
 # The error codes each operation can answer, as the tests above provoke them (issue 16, case 9).
 DOCUMENTED_ERRORS = {
-    ("post", "/v1/jobs"): {400, 401, 413, 415, 422, 503},
+    ("post", "/v1/jobs"): {400, 401, 413, 415, 422, 503, 507},
     ("get", "/v1/jobs"): {401, 422, 503},
     ("get", "/v1/jobs/{job_id}"): {401, 404, 422, 503},
     ("delete", "/v1/jobs/{job_id}"): {401, 404, 409, 422, 503},
-    ("get", "/v1/jobs/{job_id}/report"): {401, 404, 409, 422, 503},
-    ("get", "/v1/jobs/{job_id}/artifacts"): {401, 404, 409, 422, 503},
-    ("get", "/v1/jobs/{job_id}/artifacts/{name}"): {401, 404, 409, 422, 503},
+    ("get", "/v1/jobs/{job_id}/report"): {401, 404, 409, 410, 422, 503},
+    ("get", "/v1/jobs/{job_id}/artifacts"): {401, 404, 409, 410, 422, 503},
+    ("get", "/v1/jobs/{job_id}/artifacts/{name}"): {401, 404, 409, 410, 422, 503},
     ("get", "/metrics"): {401, 503},
     ("get", "/healthz"): {503},
 }
