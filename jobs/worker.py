@@ -162,7 +162,7 @@ class Worker:
                 if time.monotonic() > deadline and not monitor.cancel.is_set() and not self.stopping():
                     limit = (f"stopped after {time.perf_counter() - started:.0f} s: longer than the wall-clock limit "
                              f"of {self.settings.job_time_limit_s:g} s per job (BCF_JOB_TIME_LIMIT_S)")
-                    self._update_held(job.id, lambda held: held.ended("failed", monitor.progress, error=limit))
+                    self._end_held(job.id, lambda held: held.ended("failed", monitor.progress, error=limit))
                     log.error("job %s: %s", job.id, limit)
                     return
                 if self.stopping() and not monitor.cancel.is_set():
