@@ -130,6 +130,12 @@ def _message(exc: BaseException) -> str:
     return str(exc)
 
 
+def _one_line(text: str) -> str:
+    """`text` with every unprintable character escaped (\\n, \\x1e, \\x85): a message may quote a damaged
+    file's keys or values, and the error must stay one line."""
+    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in text)
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
     """Run `bcf` with `argv` (default: sys.argv[1:]) and return the exit code."""
     try:
@@ -138,7 +144,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         return code or 0  # --help and --version return None
     # Errors the user can fix; anything else is a bug in bcf and keeps its traceback.
     except (CycloptsError, InputError, OSError, pydantic.ValidationError) as exc:
-        print(f"bcf: error: {_message(exc)}", file=sys.stderr)
+        print(f"bcf: error: {_one_line(_message(exc))}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:  # a command may say what it kept: KeyboardInterrupt("...")
         print("bcf: interrupted" + (f"; {exc}" if exc.args else ""), file=sys.stderr)

@@ -181,7 +181,7 @@ def info(folder: Path, /) -> int:
     lines.append(f"decoder:   {m.decoder.file}: MLP {shape} ({', '.join(x.activation for x in m.decoder.layers)}), "
                  f"{m.decoder.dtype}, {m.decoder.bytes} bytes")
     lines.append("outputs:   " + "; ".join(f"{o.name} = outputs {o.channels[0]}-{o.channels[-1]}" for o in m.outputs))
-    lines.append(f"files:     the {checked} files the manifest lists match their SHA-256")
+    lines.append(f"files:     the {checked} files the manifest lists match their SHA-256 and sizes")
     if (folder / REPORT_FILE).is_file():
         lines += ["", format_report(read_report(folder), "quality (report.json):")]
     else:

@@ -20,9 +20,11 @@ from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from pydantic import BaseModel, Field
 from starlette.background import BackgroundTask
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Route
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from bcf.core import REPORT_FILE, __version__
+from bcf.core import REPORT_FILE, Report, __version__
 from bcf.jobs.queue import JobQueue
 from bcf.jobs.records import DEFAULT_TENANT, FINAL_STATES, Job, JobState, JobView
 from bcf.jobs.settings import Settings
@@ -40,6 +42,12 @@ __all__ = ["JobList", "create_app", "gated"]
 OPEN_PATHS = frozenset({"/healthz", "/readyz", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json"})
 UNAUTHORISED = "missing or wrong bearer token (Authorization: Bearer <one of BCF_API_TOKENS>)"
 MAX_LIST_OFFSET = 2**62  # the job store is SQLite: OFFSET is a signed 64-bit integer
+# An artifact's media type by its suffix, stated rather than guessed from the platform's MIME table (which
+# calls .dds an image on some systems and knows nothing of it on others); anything else is octet-stream.
+ARTIFACT_TYPES = {".json": "application/json", ".html": "text/html"}
+_BINARY = {"type": "string", "format": "binary"}
+_ARTIFACT_CONTENT = {"application/json": {"schema": {}}, "text/html": {"schema": {"type": "string"}},
+                     "application/octet-stream": {"schema": _BINARY}}
 
 
 class _BodyTooLarge(Exception):
@@ -348,14 +356,15 @@ def cancel_job(job: StoredJob, queue: QueueDep, response: Response,
 
 
 @routes.get("/v1/jobs/{job_id}/report", tags=["results"], response_class=FileResponse,
-            responses=_errors(404, 409, 410, 422))
+            responses={200: {"model": Report, "description": "report.json"}, **_errors(404, 409, 410, 422)})
 def get_report(job: SucceededJob, queue: QueueDep) -> FileResponse:
     """The job's report.json (the schema is in docs/FORMAT.md)."""
     return FileResponse(queue.artifacts_path(job.id) / REPORT_FILE, media_type="application/json")
 
 
 @routes.get("/v1/jobs/{job_id}/artifacts", tags=["results"], response_class=FileResponse,
-            responses=_errors(404, 409, 410, 422))
+            responses={200: {"content": {"application/zip": {"schema": _BINARY}}, "description": "a zip"},
+                       **_errors(404, 409, 410, 422)})
 def get_artifacts(job: SucceededJob, queue: QueueDep, settings: SettingsDep) -> FileResponse:
     """Every result file as one zip (features_*.dds, decoder.bin, manifest.json, report.json, report.html,
     baselines/...)."""
@@ -365,13 +374,16 @@ def get_artifacts(job: SucceededJob, queue: QueueDep, settings: SettingsDep) -> 
 
 
 @routes.get("/v1/jobs/{job_id}/artifacts/{name:path}", tags=["results"], response_class=FileResponse,
-            responses=_errors(404, 409, 410, 422))
+            responses={200: {"content": _ARTIFACT_CONTENT,
+                             "description": "the file: JSON, HTML, or binary (DDS, KTX2, ASTC, decoder.bin)"},
+                       **_errors(404, 409, 410, 422)})
 def get_artifact(job: SucceededJob, name: str, queue: QueueDep) -> FileResponse:
     """One result file by its name in the job's `result.artifacts`."""
     artifacts = job.result.artifacts if job.result else []
     if name not in artifacts:
         raise HTTPException(404, f"job {job.id} has no artifact {name!r}; it has {', '.join(artifacts) or 'none'}")
-    return FileResponse(queue.artifacts_path(job.id) / name, filename=Path(name).name)
+    return FileResponse(queue.artifacts_path(job.id) / name, filename=Path(name).name,
+                        media_type=ARTIFACT_TYPES.get(Path(name).suffix.lower(), "application/octet-stream"))
 
 
 # ------------------------------------------------------------------------------------------ the application
@@ -380,6 +392,15 @@ def get_artifact(job: SucceededJob, name: str, queue: QueueDep) -> FileResponse:
 async def _store_down(request: Request, exc: StoreUnavailable) -> JSONResponse:
     return JSONResponse({"detail": f"job store unavailable, retry later: {exc}"}, status_code=503,
                         headers={"Retry-After": "5"})
+
+
+async def _method_not_allowed(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+    """405 with every method of the path in `Allow`: FastAPI makes one route per method, and Starlette's own
+    answer names only the methods of the first route whose path matches."""
+    candidates = [*request.app.router.routes, *open_routes.routes, *routes.routes]  # the app's own: /openapi.json
+    methods = {method for route in candidates if isinstance(route, Route) and route.path_regex.match(request.url.path)
+               for method in route.methods or ()}
+    return JSONResponse({"detail": exc.detail}, status_code=405, headers={"Allow": ", ".join(sorted(methods))})
 
 
 async def _invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
@@ -397,6 +418,7 @@ def create_app(settings: Settings, workers: Optional[Callable[[], WorkerStatus]]
     app.state.refusals = Refusals()
     app.add_exception_handler(StoreUnavailable, _store_down)  # type: ignore[arg-type]
     app.add_exception_handler(RequestValidationError, _invalid)  # type: ignore[arg-type]
+    app.add_exception_handler(405, _method_not_allowed)  # type: ignore[arg-type]
     app.include_router(open_routes)
     app.include_router(routes)
     app.openapi = lambda: _errors_as_json(app)  # type: ignore[method-assign]
@@ -414,8 +436,24 @@ def _errors_as_json(app: FastAPI) -> dict[str, Any]:
                     bodies = [c["schema"] for c in response.get("content", {}).values() if "schema" in c]
                     if int(code) >= 400 and bodies:
                         response["content"] = {"application/json": {"schema": bodies[0]}}
+        _forms_as_sent(document)
         app.openapi_schema = document
     return app.openapi_schema
+
+
+def _forms_as_sent(document: dict[str, Any]) -> None:
+    """Multipart forms as clients can send them: FastAPI writes an optional field as "the value or null", but
+    a form has no null (a field left out is how it is omitted; a text part named like a file field is not a
+    file), and a field the form does not name is a 400 (`read_upload`), so the form admits no others."""
+    forms = [operation["requestBody"]["content"]["multipart/form-data"]["schema"]
+             for operations in document["paths"].values() for operation in operations.values()
+             if "multipart/form-data" in operation.get("requestBody", {}).get("content", {})]
+    for reference in forms:
+        form = document["components"]["schemas"][reference["$ref"].rpartition("/")[2]]
+        for name, field in form["properties"].items():
+            kinds = [kind for kind in field.pop("anyOf", []) if kind != {"type": "null"}]
+            form["properties"][name] = {**kinds[0], **field} if len(kinds) == 1 else field
+        form["additionalProperties"] = False
 
 
 def gated(app: FastAPI, settings: Settings) -> ASGIApp:

@@ -24,8 +24,8 @@ from bcf.core.material.texture_set import MaterialSource
 from bcf.core.options import Address, ResolvedOptions
 from bcf.core.version import GENERATOR
 
-__all__ = ["DECODER_FILE", "MANIFEST_FILE", "ExportError", "Manifest", "feature_file", "read_manifest",
-           "sha256_hex", "verify_files", "write_export"]
+__all__ = ["DECODER_FILE", "MANIFEST_FILE", "ExportError", "Manifest", "feature_file", "read_decoder_bytes",
+           "read_feature_texture", "read_manifest", "sha256_hex", "verify_files", "write_export"]
 
 FORMAT_NAME = "bcf-neural-material"
 FORMAT_VERSION = 1
@@ -198,18 +198,55 @@ def write_export(directory: Path, model: NeuralMaterial, source: MaterialSource,
     return manifest
 
 
+def _read_checked(path: Path, sha256: str) -> bytes:
+    if not path.is_file():
+        raise ExportError("missing", file=path)
+    data = path.read_bytes()
+    if sha256_hex(data) != sha256:
+        raise ExportError("contents do not match the manifest's sha256 (modified or corrupt)", file=path)
+    return data
+
+
+def read_feature_texture(directory: Path, entry: FeatureTextureEntry) -> containers.BC6HTexture:
+    """A feature texture that matches its manifest entry: SHA-256, then the DDS header's size, mips, format and
+    payload bytes; ExportError naming the file otherwise."""
+    path = Path(directory) / entry.file
+    _read_checked(path, entry.sha256)
+    try:
+        texture = containers.read_dds(path)
+    except containers.ContainerError as exc:
+        raise ExportError(str(exc)) from None
+    payload = sum(level.nbytes for level in texture.levels)
+    found = (texture.width, texture.height, len(texture.levels), texture.signed, payload)
+    if found != (entry.width, entry.height, entry.mips, False, entry.bytes):
+        raise ExportError(f"{texture.width}x{texture.height}, {len(texture.levels)} mips, "
+                          f"{'SF16' if texture.signed else 'UF16'}, {payload:,} bytes of blocks; the manifest says "
+                          f"{entry.width}x{entry.height}, {entry.mips} mips, UF16, {entry.bytes:,} bytes", file=path)
+    return texture
+
+
+def read_decoder_bytes(directory: Path, entry: DecoderEntry) -> bytes:
+    """decoder.bin, if it matches its manifest entry (SHA-256 and size) and holds every layer the entry
+    places in it; ExportError naming the file otherwise."""
+    path = Path(directory) / entry.file
+    data = _read_checked(path, entry.sha256)
+    if len(data) != entry.bytes:
+        raise ExportError(f"{len(data):,} bytes; the manifest says {entry.bytes:,}", file=path)
+    values = len(data) // 2  # fp16
+    for number, layer in enumerate(entry.layers):
+        end = max(layer.weight_offset + layer.inputs * layer.outputs, layer.bias_offset + layer.outputs)
+        if end > values:
+            raise ExportError(f"{values} fp16 values; the manifest's layer {number} needs {end}", file=path)
+    return data
+
+
 def verify_files(directory: Path, manifest: Manifest) -> int:
-    """Check every file the manifest lists against its size and SHA-256; ExportError naming the first that does
-    not match. Returns how many files were checked."""
-    entries = [(t.file, t.sha256) for t in manifest.feature_textures] + [(manifest.decoder.file,
-                                                                          manifest.decoder.sha256)]
-    for name, sha256 in entries:
-        path = Path(directory) / name
-        if not path.is_file():
-            raise ExportError("missing", file=path)
-        if file_sha256(path) != sha256:
-            raise ExportError("contents do not match the manifest's sha256 (modified or corrupt)", file=path)
-    return len(entries)
+    """Check every file the manifest lists against its SHA-256 and size (a feature texture's DDS header too);
+    ExportError naming the first that does not match. Returns how many files were checked."""
+    for texture in manifest.feature_textures:
+        read_feature_texture(directory, texture)
+    read_decoder_bytes(directory, manifest.decoder)
+    return len(manifest.feature_textures) + 1
 
 
 def read_manifest(directory: Path) -> Manifest:

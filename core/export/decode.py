@@ -16,7 +16,7 @@ import torch
 
 from bcf.core.codec import bc6h, containers
 from bcf.core.export.artifacts import (DecoderEntry, ExportError, FeatureTextureEntry, Manifest,
-                                       read_manifest, sha256_hex)
+                                       read_decoder_bytes, read_feature_texture, read_manifest)
 from bcf.core.fit.model import Decoder, FeatureTextureSpec, NeuralMaterial, StaticFeatures
 from bcf.core.fit.sampling import texel_centres
 from bcf.core.material import images
@@ -40,27 +40,8 @@ class ExportedMaterial:
         self.directory = directory
 
 
-def _read_checked(path: Path, sha256: str) -> bytes:
-    if not path.is_file():
-        raise ExportError("missing", file=path)
-    data = path.read_bytes()
-    if sha256_hex(data) != sha256:
-        raise ExportError("contents do not match the manifest's sha256 (modified or corrupt)", file=path)
-    return data
-
-
-def _read_feature_texture(directory: Path, entry: FeatureTextureEntry) -> list[torch.Tensor]:
-    path = directory / entry.file
-    _read_checked(path, entry.sha256)
-    try:
-        texture = containers.read_dds(path)
-    except containers.ContainerError as exc:
-        raise ExportError(str(exc)) from None
-    found = (texture.width, texture.height, len(texture.levels), texture.signed)
-    if found != (entry.width, entry.height, entry.mips, False):
-        raise ExportError(f"{texture.width}x{texture.height}, {len(texture.levels)} mips, "
-                          f"{'SF16' if texture.signed else 'UF16'}; the manifest says {entry.width}x"
-                          f"{entry.height}, {entry.mips} mips, UF16", file=path)
+def _feature_levels(directory: Path, entry: FeatureTextureEntry) -> list[torch.Tensor]:
+    texture = read_feature_texture(directory, entry)
     levels = []
     for number, blocks in enumerate(texture.levels):
         w, h = containers.mip_size(texture.width, texture.height, number)
@@ -70,16 +51,11 @@ def _read_feature_texture(directory: Path, entry: FeatureTextureEntry) -> list[t
 
 
 def _read_decoder(directory: Path, entry: DecoderEntry) -> Decoder:
-    data = _read_checked(directory / entry.file, entry.sha256)
-    values = np.frombuffer(data, dtype="<f2")
+    values = np.frombuffer(read_decoder_bytes(directory, entry), dtype="<f2")  # every layer inside: checked
     layers = []
     for layer in entry.layers:
-        end = max(layer.bias_offset + layer.outputs, layer.weight_offset + layer.inputs * layer.outputs)
-        if end > values.size:
-            raise ExportError(f"{values.size} fp16 values, the manifest's layers need {end}",
-                              file=directory / entry.file)
         w = values[layer.weight_offset:layer.weight_offset + layer.inputs * layer.outputs]
-        b = values[layer.bias_offset:end]
+        b = values[layer.bias_offset:layer.bias_offset + layer.outputs]
         layers.append((torch.from_numpy(w.astype(np.float32).reshape(layer.outputs, layer.inputs)),
                        torch.from_numpy(b.astype(np.float32))))
     return Decoder.from_layers(layers)  # two layers, relu then identity, 12-N-8: checked by the manifest model
@@ -90,7 +66,7 @@ def load_export(directory: Path) -> ExportedMaterial:
     directory = Path(directory)
     manifest = read_manifest(directory)
     specs = tuple(FeatureTextureSpec(t.width, t.height, t.mips, t.lod_bias) for t in manifest.feature_textures)
-    levels = [_read_feature_texture(directory, t) for t in manifest.feature_textures]
+    levels = [_feature_levels(directory, t) for t in manifest.feature_textures]
     decoder = _read_decoder(directory, manifest.decoder)
     model = NeuralMaterial(StaticFeatures(specs, levels), decoder, manifest.address)
     return ExportedMaterial(manifest, model.eval(), directory)

@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Optional
+from typing import Annotated, Optional
 
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from bcf.core.errors import InputError
 from bcf.core.material.texture_set import MaterialSource
@@ -35,6 +35,12 @@ class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
+# Counts and sizes are non-negative and exact as floats (the table divides and formats them): a damaged
+# report is a ReportError, never an overflow; seconds and rates are never negative.
+Count = Annotated[int, Field(ge=0, le=2**53)]
+NonNegative = Annotated[float, Field(ge=0)]
+
+
 class TextureScores(_Model):
     albedo: float
     normal: float
@@ -43,9 +49,9 @@ class TextureScores(_Model):
 
 
 class MipMetrics(_Model):
-    mip: int
-    width: int
-    height: int
+    mip: Count
+    width: Count
+    height: Count
     psnr: TextureScores
     ssim: TextureScores
     mse: TextureScores
@@ -64,27 +70,27 @@ class Evaluation(_Model):
 
 
 class SizeReport(_Model):
-    total_bytes: int  # features + weights: what a renderer keeps in memory
-    features_bytes: int  # BC6H blocks of all mips of the four feature textures
-    weights_bytes: int  # decoder.bin
-    files_bytes: int  # everything in the output folder on disk (headers, manifest, report included)
-    bits_per_texel: float  # total_bytes * 8 / (material width * height)
-    bc1_bc5_bytes: int  # BC1 albedo + BC1 ARM + BC5 normal with full mip chains, at the material's size
+    total_bytes: Count  # features + weights: what a renderer keeps in memory
+    features_bytes: Count  # BC6H blocks of all mips of the four feature textures
+    weights_bytes: Count  # decoder.bin
+    files_bytes: Count  # everything in the output folder on disk (headers, manifest, report included)
+    bits_per_texel: NonNegative  # total_bytes * 8 / (material width * height)
+    bc1_bc5_bytes: Count  # BC1 albedo + BC1 ARM + BC5 normal with full mip chains, at the material's size
 
 
 class TimingReport(_Model):
-    phase1_s: float
-    transition_s: float
-    phase2_s: float
-    export_s: float
-    evaluation_s: float
-    total_s: float
+    phase1_s: NonNegative
+    transition_s: NonNegative
+    phase2_s: NonNegative
+    export_s: NonNegative
+    evaluation_s: NonNegative
+    total_s: NonNegative
 
 
 class HistoryEntry(_Model):
-    phase: int
-    iteration: int
-    elapsed_s: float
+    phase: Count
+    iteration: Count
+    elapsed_s: NonNegative
     psnr: float  # running training PSNR (random batches), dB
 
 
@@ -94,14 +100,14 @@ class BaselineReport(_Model):
 
     description: str  # what was encoded how, e.g. "BC1 albedo + ARM, BC5 normal at 1024x1024, mips to 1x1"
     encoder: str  # library and settings, e.g. "quicktex 0.3.1, level 18"
-    width: int  # resolution of the baseline's top mip (half the material's for the *_half baselines)
-    height: int
+    width: Count  # resolution of the baseline's top mip (half the material's for the *_half baselines)
+    height: Count
     aggregate: Aggregate
     per_mip: list[MipMetrics]
-    size_bytes: int  # every block of every mip (down to 1x1 for BC/ASTC), what a renderer keeps in memory
-    bits_per_texel: float  # size_bytes * 8 / (material width * height)
-    encode_s: float
-    evaluation_s: float
+    size_bytes: Count  # every block of every mip (down to 1x1 for BC/ASTC), what a renderer keeps in memory
+    bits_per_texel: NonNegative  # size_bytes * 8 / (material width * height)
+    encode_s: NonNegative
+    evaluation_s: NonNegative
 
 
 class Report(_Model):
