@@ -78,9 +78,14 @@ def render_mip(decoder: DecoderFunction, width: int, height: int, s: float,
     """Evaluate a decoder at the texel centres (or, with `jitter`, one random point per texel) of a
     width x height grid at scale s: -> (C, height, width)."""
     rows = max(1, RENDER_CHUNK // width)
-    parts = [decoder(texel_centres(width, height, slice(y, y + rows), device, jitter), s)
-             for y in range(0, height, rows)]
-    return torch.cat(parts, dim=0).T.reshape(-1, height, width)
+    out: Optional[torch.Tensor] = None
+    for y in range(0, height, rows):  # filled in place: one full-size image at a time, never a list and its copy
+        part = decoder(texel_centres(width, height, slice(y, y + rows), device, jitter), s)
+        if out is None:
+            out = torch.empty(part.shape[1], height, width, dtype=part.dtype, device=part.device)
+        out[:, y:y + rows] = part.T.reshape(-1, min(rows, height - y), width)
+    assert out is not None
+    return out
 
 
 @torch.no_grad()

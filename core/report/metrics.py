@@ -71,7 +71,7 @@ def ssim(reference: torch.Tensor, test: torch.Tensor) -> float:
 def _scores(reference: torch.Tensor, test: torch.Tensor) -> MipScores:
     """Every channel's MSE and SSIM once; a group's score is the mean over its channels (every channel has
     the same number of texels and of SSIM windows), so `all` costs nothing extra."""
-    mse = torch.mean((reference - test) ** 2, dim=(1, 2)).double()
+    mse = (reference - test).square_().mean(dim=(1, 2)).double()  # one temporary image, squared in place
     structural = ssim_per_channel(reference, test)
     out: MipScores = {"mse": {}, "psnr": {}, "ssim": {}}
     for name, channels in GROUPS.items():
@@ -98,7 +98,7 @@ def evaluate(decoder: DecoderFunction, reference: ReferenceMaterial,
         state = generator.get_state()
         test = render_mip(decoder, w, h, float(level), generator)
         generator.set_state(state)  # the same points for the reference
-        target = render_mip(reference.sample, w, h, float(level), generator).clamp(0.0, 1.0)
+        target = render_mip(reference.sample, w, h, float(level), generator).clamp_(0.0, 1.0)
         results.append(_scores(target, _stored(test, target)))
     return results
 
@@ -106,7 +106,7 @@ def evaluate(decoder: DecoderFunction, reference: ReferenceMaterial,
 def _stored(test: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """Scores are on stored values in [0, 1]: a renderer saturates the decoder's output, and so does
     `bcf decode`, so the report matches the decoded files."""
-    return test.to(target.device).clamp(0.0, 1.0)
+    return test.to(target.device).clamp_(0.0, 1.0)  # in place: the rendered image is the caller's temporary
 
 
 @torch.no_grad()
