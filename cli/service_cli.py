@@ -10,12 +10,15 @@ import logging
 import os
 import signal
 import sys
-from typing import Annotated, Optional
+from typing import TYPE_CHECKING, Annotated, Optional
 
 from cyclopts.types import NonNegativeInt, PositiveInt
 
 from bcf.core import CompressOptions, InputError
 from bcf.cli import model_flags
+
+if TYPE_CHECKING:
+    from bcf.jobs.queue import JobQueue
 
 SETTINGS = ("Settings come from the environment or a .env file: BCF_DATA_DIR, BCF_API_TOKENS, BCF_QUEUE_URL, "
             "BCF_MAX_UPLOAD_MB and more (see the README).")
@@ -94,7 +97,7 @@ def serve(*, host: str = "127.0.0.1", port: PositiveInt = 8000, workers: Optiona
     return 0
 
 
-def _rebuild_records(queue) -> None:
+def _rebuild_records(queue: "JobQueue") -> None:
     """Records the store lost while the service was down, back from the data folder before the API answers
     (`bcf.jobs.recovery`); a store that does not answer yet is left to the workers' recovery passes."""
     from bcf.jobs.store import StoreUnavailable

@@ -36,6 +36,7 @@ class RecoveryReport(BaseModel):
     restored: list[str] = []  # "<id> <state>": records put back into the store
     requeued: list[str] = []  # restored unfinished jobs, sent to the workers again
     adopted: list[str] = []  # unfinished jobs in the store whose complete result was on disk: now succeeded
+    kept: list[str] = []  # stored jobs whose folders had no job.json (stored before records were kept): written
     orphans: list[str] = []  # folders without a readable record, left as they are
     moved_aside: list[str] = []  # unreadable database files, kept under a new name
 
@@ -46,6 +47,7 @@ class RecoveryReport(BaseModel):
         """The report for people: one line per kind of change."""
         kinds = (("moved aside (unreadable)", self.moved_aside), ("restored", self.restored),
                  ("re-queued", self.requeued), ("succeeded (result found on disk)", self.adopted),
+                 ("records written beside their files", self.kept),
                  ("orphan folders (no job record; kept)", self.orphans))
         return [f"{what}: {len(items)}" + (f": {', '.join(items)}" if items else "") for what, items in kinds]
 
@@ -103,6 +105,11 @@ def _recover_one(queue: "JobQueue", job_id: str, report: RecoveryReport) -> None
             after = queue.store.update(job_id, lambda j: finished if j.state in ("queued", "running") else None)
             if after is not None and after.state == "succeeded":
                 report.adopted.append(job_id)
+                stored = after
+        folders = [queue.inputs_path(job_id)] + ([queue.artifacts_path(job_id)] if stored.state == "succeeded" else [])
+        if any(folder.is_dir() and not (folder / RECORD_FILE).exists() for folder in folders):
+            queue.keep_record(stored)  # a job stored before records were kept beside its files
+            report.kept.append(job_id)
         return
     submitted = read_record(queue.inputs_path(job_id))
     record = finished or (None if submitted is None else _from_inputs(submitted))

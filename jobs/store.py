@@ -137,6 +137,8 @@ class SqliteJobStore:
             self._in_hook.active = True  # the hook uses this store: a second loss meanwhile must not recurse
             try:
                 self.on_recreated()
+            except Exception:  # the store still says it needs a rebuild: the workers' next recovery pass does it
+                log.exception("rebuilding the job records after recreating %s failed", self.path)
             finally:
                 self._in_hook.active = False
         try:

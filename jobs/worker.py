@@ -206,6 +206,11 @@ class Worker:
     def _recover(self) -> None:
         try:
             self.queue.rebuild_if_needed()  # the store lost its records (or is new): back from the data folder
+        except StoreUnavailable as exc:
+            log.warning("rebuild of the job records skipped: %s", exc)
+        except OSError as exc:  # an unreadable data folder must not end the recovery thread; tried again next pass
+            log.error("rebuild of the job records failed: %s", exc)
+        try:
             for job in self.queue.recover():
                 log.info("job %s: recovered -> %s", job.id, job.state)
         except StoreUnavailable as exc:

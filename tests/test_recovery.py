@@ -5,6 +5,7 @@ it and tries again. Real stores, real `bcf serve` / `bcf worker` / `redis-server
 
 from __future__ import annotations
 
+import datetime
 import io
 import json
 import subprocess
@@ -17,7 +18,10 @@ import pytest
 import redis
 
 from bcf.core.options import JobOptions
-from bcf.jobs.records import InputFile, Job
+from bcf.jobs.queue import JobQueue
+from bcf.jobs.records import InputFile, Job, JobResult, utc_now
+from bcf.jobs.recovery import RecoveryReport, read_record, write_record
+from bcf.jobs.settings import Settings
 from bcf.jobs.store import JobStore, RedisJobStore, SqliteJobStore
 from bcf_command import BCF
 from service_harness import TINY_OPTIONS, BcfEnvironment, redis_server, tiny_material, wait_until
@@ -105,6 +109,15 @@ def test_restore_keeps_existing_records_and_the_rebuild_mark(kind: str, tmp_path
     if kind == "redis":
         redis.Redis.from_url(redis_url).flushdb()
         assert store.needs_rebuild()
+
+
+def test_bcf_admin_recover_says_so_when_the_store_does_not_answer(tmp_path: Path) -> None:
+    environment = BcfEnvironment(tmp_path, queue_url="redis://127.0.0.1:1/0")  # nothing listens on port 1
+    result = subprocess.run([*BCF, "admin", "recover"], capture_output=True, text=True, env=environment.env,
+                            timeout=120)
+    assert result.returncode == 2 and result.stdout == ""
+    assert result.stderr.startswith("bcf: error: the job store does not answer: job store (Redis):"), result.stderr
+    assert len(result.stderr.splitlines()) == 1
 
 
 # --------------------------------------------------------------------------------------- embedded (SQLite)
@@ -259,3 +272,37 @@ def test_job_records_flushed_from_redis_are_rebuilt(tmp_path: Path) -> None:
         worker.stop()
         server.stop()
         redis_process.stop()
+
+
+# ------------------------------------------------------------------------------- the rebuild, without processes
+
+
+def test_rebuild_and_recovery_passes_trust_what_the_data_folder_holds(tmp_path: Path) -> None:
+    """A stale running job whose result is complete on disk is recorded as succeeded, not run again; a record
+    whose result files are gone comes back failed; records of jobs stored before records were kept as files are
+    written beside their files by the first rebuild."""
+    queue = JobQueue(Settings(_env_file=None, data_dir=tmp_path, stale_after_s=1))
+    long_ago = utc_now() - datetime.timedelta(hours=1)
+    finished, lost, older = a_job(), a_job(), a_job()
+    for job in (finished, lost, older):
+        (queue.inputs_path(job.id) / "albedo").mkdir(parents=True)
+    # `finished`: running, its worker gone, its result complete with its record (the worker could not record it).
+    running = finished.model_copy(update={"state": "running", "worker": "gone", "attempts": 1,
+                                          "heartbeat_at": long_ago, "updated_at": long_ago})
+    queue.store.restore(running)
+    result = JobResult(psnr=40.0, ssim=0.99, size_bytes=10, bits_per_texel=1.0, artifacts=["decoder.bin"])
+    queue.artifacts_path(finished.id).mkdir(parents=True)
+    (queue.artifacts_path(finished.id) / "decoder.bin").write_bytes(b"0123456789")
+    write_record(queue.artifacts_path(finished.id), running.ended("succeeded", result=result))
+    # `lost`: only its inputs' record, saying succeeded, and no result files.
+    write_record(queue.inputs_path(lost.id), lost.ended("succeeded", result=result))
+    # `older`: in the store, with no record beside its files.
+    queue.store.restore(older)
+
+    [recovered] = queue.recover()
+    assert recovered.id == finished.id and recovered.state == "succeeded" and recovered.result == result
+    report = queue.rebuild()
+    assert report.restored == [f"{lost.id} failed"] and report.requeued == [] and report.orphans == []
+    assert "result files were lost" in (queue.store.get(lost.id).error or "")
+    assert report.kept == [older.id] and read_record(queue.inputs_path(older.id)) == older
+    assert queue.rebuild().model_dump() == RecoveryReport().model_dump()  # nothing more to do
