@@ -75,7 +75,7 @@ def check_output_file(path: Path, allowed: Sequence[str], what: str) -> str:
 def build_app() -> App:
     # The command modules import torch-heavy names inside the commands: `bcf --help`, `--version` and argument
     # errors never load torch.
-    from bcf import batch_cli, bc6h_cli, material_cli, preview_cli, service_cli
+    from bcf import admin_cli, batch_cli, bc6h_cli, material_cli, preview_cli, service_cli
 
     def summary(command: Callable[..., int]) -> str:  # the docstring's first clause: one line on the top page
         return re.split(r" \(|:", (command.__doc__ or "").strip().splitlines()[0])[0].rstrip(".")
@@ -95,7 +95,11 @@ def build_app() -> App:
     for command in bc6h_cli.COMMANDS:
         bc6h.command(command)
     app.command(bc6h)
-    for parent, prog in ((app, "bcf"), (bc6h, "bcf bc6h")):
+    admin = App(name="admin", help="Maintenance of the service's data folder: recover", help_format="markdown")
+    for command in admin_cli.COMMANDS:
+        admin.command(command)
+    app.command(admin)
+    for parent, prog in ((app, "bcf"), (bc6h, "bcf bc6h"), (admin, "bcf admin")):
         parent.default(_no_command(prog))
     return app
 

@@ -10,12 +10,15 @@ import logging
 import os
 import signal
 import sys
-from typing import Annotated, Optional
+from typing import TYPE_CHECKING, Annotated, Optional
 
 from cyclopts.types import NonNegativeInt, PositiveInt
 
 from bcf.core import CompressOptions, InputError
 from bcf.cli import model_flags
+
+if TYPE_CHECKING:
+    from bcf.jobs.queue import JobQueue
 
 SETTINGS = ("Settings come from the environment or a .env file: BCF_DATA_DIR, BCF_API_TOKENS, BCF_QUEUE_URL, "
             "BCF_MAX_UPLOAD_MB and more (see the README).")
@@ -74,7 +77,9 @@ def serve(*, host: str = "127.0.0.1", port: PositiveInt = 8000, workers: Optiona
     env = {**os.environ, "BCF_DATA_DIR": str(settings.data_dir)}
     supervisor = WorkerSupervisor([sys.executable, "-m", "bcf", "worker", "--device", options.device,
                                    "--exit-with-parent", str(os.getpid())], env, count)
-    app = gated(create_app(settings, supervisor.status if count else None), settings)
+    api = create_app(settings, supervisor.status if count else None)
+    _rebuild_records(api.state.queue)
+    app = gated(api, settings)
     supervisor.start()
     mode = f"farm mode, queue {settings.queue_url}" if settings.farm_mode else "embedded mode"
     print(f"bcf serve: {mode}, data in {settings.data_dir}, {count} worker process(es), "
@@ -90,6 +95,21 @@ def serve(*, host: str = "127.0.0.1", port: PositiveInt = 8000, workers: Optiona
     finally:
         supervisor.stop(timeout=60)  # SIGTERM: running jobs go back to the queue
     return 0
+
+
+def _rebuild_records(queue: "JobQueue") -> None:
+    """Records the store lost while the service was down, back from the data folder before the API answers
+    (`bcf.jobs.recovery`); a store that does not answer yet is left to the workers' recovery passes."""
+    from bcf.jobs.store import StoreUnavailable
+
+    try:
+        report = queue.rebuild_if_needed()
+    except StoreUnavailable as exc:
+        print(f"bcf serve: job records not checked: {exc}", file=sys.stderr, flush=True)
+        return
+    if report is not None and report.changed():
+        print("bcf serve: job records rebuilt from the data folder: " + "; ".join(report.lines()), file=sys.stderr,
+              flush=True)
 
 
 class _StopServing(Exception):

@@ -3,7 +3,8 @@
 Huey carries only job ids; the record is the truth. A worker claims a job by moving it from queued to
 running in the store, so a duplicate message (a re-queue racing a slow worker) is a no-op. Jobs are never
 lost: the store persists them (SQLite file or Redis), Huey persists its messages, and `recover` re-queues
-jobs whose worker stopped sending heartbeats and queued jobs whose message is missing.
+jobs whose worker stopped sending heartbeats and queued jobs whose message is missing. Each record is also kept
+as a file beside the job's inputs and results (`bcf.jobs.recovery`), from which a lost store is rebuilt.
 """
 
 from __future__ import annotations
@@ -21,14 +22,15 @@ from huey import Huey, RedisHuey, SqliteHuey
 
 from bcf.core import staging_leftovers
 from bcf.jobs.records import FINAL_STATES, Job, utc_now
+from bcf.jobs.recovery import RECORD_FILE, RecoveryReport, rebuild_records, write_record
 from bcf.jobs.settings import Settings
 from bcf.jobs.store import JobStore, StoreUnavailable, open_store, sqlite_failure
 
 __all__ = ["JobQueue", "RUN_JOB_TASK"]
 
 RUN_JOB_TASK = "bcf.run_job"
-log = logging.getLogger("bcf.queue")
 JobRunner = Callable[[str], None]
+log = logging.getLogger("bcf.jobs")
 
 
 def _submitting_only(job_id: str) -> None:
@@ -40,7 +42,6 @@ class JobQueue:
 
     def __init__(self, settings: Settings, runner: Optional[JobRunner] = None):
         self.settings = settings
-        self.store: JobStore = open_store(settings)
         # RedisHuey on BCF_QUEUE_URL, else SqliteHuey in the data directory; no result store: results are files.
         if settings.queue_url:
             self.huey: Huey = RedisHuey("bcf", url=settings.queue_url, results=False)
@@ -48,6 +49,8 @@ class JobQueue:
             settings.data_dir.mkdir(parents=True, exist_ok=True)
             self.huey = SqliteHuey("bcf", filename=str(settings.data_dir / "queue.db"), results=False)
         self._task = self.huey.task(name=RUN_JOB_TASK)(runner or _submitting_only)
+        # After the queue, so that a rebuild (which may re-queue jobs) can run from the store's first operation.
+        self.store: JobStore = open_store(settings, on_recreated=self._rebuild_lost)
 
     def enqueue(self, job_id: str) -> None:
         """Send the job's message; StoreUnavailable (StoreFull: its disk is full) if the SQLite queue fails."""
@@ -60,6 +63,9 @@ class JobQueue:
         """Store and enqueue `job`, or return the existing job with the same input key: (job, created)."""
         stored, created = self.store.add(job)
         if created:
+            # The record beside the inputs: after `add`, so a rebuild never sees a submission that may yet be
+            # deduplicated away; a loss of the store before it is written loses only this one submission.
+            self.keep_record(stored)
             try:
                 self.enqueue(stored.id)
             except StoreUnavailable as exc:  # the job is stored: `recover` finds it without a message, sends one
@@ -78,9 +84,50 @@ class JobQueue:
             return None
 
         job = self.store.update(job_id, change)
-        if job is not None:
-            self.remove_inputs(job)
+        if job is not None and job.state == "cancelled":
+            self.settle(job)
         return job
+
+    def keep_record(self, job: Job) -> None:
+        """The job's record as a file beside its inputs, and a succeeded one in its artifacts too, from which
+        `rebuild_records` restores it if the store loses it (`bcf.jobs.recovery`)."""
+        write_record(self.inputs_path(job.id), job)
+        if job.state == "succeeded" and job.purged_at is None:
+            write_record(self.artifacts_path(job.id), job)
+
+    def settle(self, job: Job) -> None:
+        """A job whose outcome is stored: its record kept beside its files and, once it ended, its input images
+        removed (no run needs them again; a resubmission uploads them anew). The record file stays, for a
+        rebuild. Jobs still queued or running keep their inputs."""
+        self.keep_record(job)
+        if job.state in FINAL_STATES:
+            self._remove_input_files(job.id)
+
+    def _remove_input_files(self, job_id: str) -> None:
+        folder = self.inputs_path(job_id)
+        if folder.is_dir():
+            for entry in folder.iterdir():
+                if entry.name != RECORD_FILE:
+                    shutil.rmtree(entry, ignore_errors=True) if entry.is_dir() else entry.unlink(missing_ok=True)
+
+    def rebuild(self) -> RecoveryReport:
+        """Restore the records the store lacks from the data folder (`bcf.jobs.recovery.rebuild_records`)."""
+        report = rebuild_records(self)
+        self.store.mark_rebuilt()
+        moved = getattr(self.store, "moved_aside", [])  # unreadable SQLite files this process moved aside
+        report.moved_aside = [str(path) for path in moved]
+        moved.clear()
+        level = logging.WARNING if report.changed() else logging.INFO
+        for line in report.lines():
+            log.log(level, "rebuild of the job records: %s", line)
+        return report
+
+    def rebuild_if_needed(self) -> Optional[RecoveryReport]:
+        """`rebuild` if the store lost its records (or is new), else None."""
+        return self.rebuild() if self.store.needs_rebuild() else None
+
+    def _rebuild_lost(self) -> None:
+        self.rebuild()
 
     def pending_messages(self) -> int:
         return self.huey.pending_count()
@@ -94,11 +141,14 @@ class JobQueue:
         running, _ = self.store.list({"running"})
         for job in running:
             if (job.heartbeat_at or job.updated_at) < now - stale:
-                after = self.store.update(job.id, self._recover_change(now - stale))
+                # Its worker may have finished it but failed to record it: the result on disk counts.
+                finished = finished_record(self, job.id)
+                after = self.store.update(job.id, self._recover_change(now - stale, finished))
                 if after is not None and after.state != "running":
                     if after.state == "queued":
                         self.enqueue(after.id)
-                    self.remove_inputs(after)
+                    elif after.state in FINAL_STATES:
+                        self.settle(after)
                     changed.append(after)
         queued, _ = self.store.list({"queued"})
         if queued:
@@ -111,10 +161,13 @@ class JobQueue:
                     changed.append(job)
         return changed
 
-    def _recover_change(self, threshold: datetime.datetime) -> Callable[[Job], Optional[Job]]:
+    def _recover_change(self, threshold: datetime.datetime,
+                        finished: Optional[Job] = None) -> Callable[[Job], Optional[Job]]:
         def change(job: Job) -> Optional[Job]:
             if job.state != "running" or (job.heartbeat_at or job.updated_at) >= threshold:
                 return None  # it moved on, or a heartbeat arrived meanwhile
+            if finished is not None:
+                return finished
             lost = f"its worker {job.worker} stopped responding (attempt {job.attempts})"
             if job.cancel_requested:
                 return job.ended("cancelled", error=lost)
@@ -143,22 +196,17 @@ class JobQueue:
             raise
         return Path(handle.name)
 
-    def remove_inputs(self, job: Job) -> None:
-        """The inputs of a job that ended (its outcome stored): no run needs them again, and a resubmission
-        uploads them anew. Jobs still queued or running keep theirs."""
-        if job.state in FINAL_STATES:
-            shutil.rmtree(self.inputs_path(job.id), ignore_errors=True)
-
     def purge(self, job_id: str) -> Optional[Job]:
-        """Remove a finished job's inputs and artifacts, keeping its record as a tombstone (`purged_at`). The
-        record changes first, so no download starts on files about to go. Jobs not finished are unchanged."""
+        """Remove a finished job's inputs and artifacts, keeping its record as a tombstone (`purged_at`), in the
+        store and as the inputs folder's job.json. The record changes first, so no download starts on files about
+        to go. Jobs not finished are unchanged."""
         def change(job: Job) -> Optional[Job]:
             return job.tombstone() if job.state in FINAL_STATES and job.purged_at is None else None
 
         job = self.store.update(job_id, change)
         if job is not None and job.purged_at is not None:
-            shutil.rmtree(self.inputs_path(job.id), ignore_errors=True)
             shutil.rmtree(self.artifacts_path(job.id), ignore_errors=True)
+            self.settle(job)  # the tombstone is what a rebuild restores
         return job
 
     def expire(self) -> list[Job]:

@@ -2,7 +2,8 @@
 
 A job runs in a consumer thread; a monitor thread beside it writes progress and a heartbeat to the job
 record every `heartbeat_s` and notices cancel requests. A cancel request or a shutdown stops training at the
-next iteration (`should_stop`); a shutdown puts the job back in the queue for another worker.
+next iteration (`should_stop`); a shutdown puts the job back in the queue for another worker. An outcome the
+store cannot take is kept (a result describes itself on disk) and recorded again until the store takes it.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from typing import Any, Callable, Optional
 
 from bcf.core import TrainingProgress, TrainingStopped, compress_material, failure_text, resolve_options
 from bcf.jobs.queue import JobQueue
-from bcf.jobs.records import Job, JobProgress, JobResult, utc_now
+from bcf.jobs.records import FINAL_STATES, Job, JobProgress, JobResult, utc_now
 from bcf.jobs.settings import Settings
 from bcf.jobs.store import JobStore, StoreUnavailable
 from bcf.jobs.submission import load_job_material
@@ -28,6 +29,7 @@ __all__ = ["Worker"]
 
 log = logging.getLogger("bcf.worker")
 SHUTDOWN_GRACE_S = 10.0
+RECORD_RETRY_MAX_S = 5.0  # longest pause between attempts to record an outcome the store did not take
 
 
 class _Monitor:
@@ -110,11 +112,29 @@ class Worker:
             return change(job) if job.state == "running" and job.worker == self.id else None
         return self.queue.store.update(job_id, held)
 
-    def _end_held(self, job_id: str, change: Callable[[Job], Job]) -> Optional[Job]:
-        """Store a held job's outcome; once it is stored, the job's inputs are no longer needed."""
-        job = self._update_held(job_id, change)
-        if job is not None:
-            self.queue.remove_inputs(job)
+    def _record(self, job_id: str, change: Callable[[Job], Job], what: str) -> Optional[Job]:
+        """`_update_held`, again and again while the store fails (Redis down, a locked or lost database): an
+        outcome is not dropped. Gives up only when the worker stops; a result's job.json in its artifacts folder
+        then lets the next recovery pass record it (`bcf.jobs.recovery`)."""
+        pause = 0.5
+        while True:
+            try:
+                return self._update_held(job_id, change)
+            except Exception as exc:  # whatever the store raises: the store's trouble, not the job's
+                if self.stopping():
+                    log.error("job %s: %s not recorded (%s); the worker is stopping: recovery records it from the "
+                              "data folder", job_id, what, exc)
+                    return None
+                log.warning("job %s: %s not recorded yet (%s); trying again in %.1f s", job_id, what, exc, pause)
+                self.shutdown.wait(pause)
+                pause = min(pause * 2, RECORD_RETRY_MAX_S)
+
+    def _end(self, job_id: str, change: Callable[[Job], Job], what: str) -> Optional[Job]:
+        """Record the outcome (`_record`), then settle the job: its record beside its files, its input images
+        removed (`JobQueue.settle`)."""
+        job = self._record(job_id, change, what)
+        if job is not None and job.state in FINAL_STATES:
+            self.queue.settle(job)
         return job
 
     def release(self, job_id: str) -> None:
@@ -162,24 +182,29 @@ class Worker:
                 if time.monotonic() > deadline and not monitor.cancel.is_set() and not self.stopping():
                     limit = (f"stopped after {time.perf_counter() - started:.0f} s: longer than the wall-clock limit "
                              f"of {self.settings.job_time_limit_s:g} s per job (BCF_JOB_TIME_LIMIT_S)")
-                    self._end_held(job.id, lambda held: held.ended("failed", monitor.progress, error=limit))
+                    self._end(job.id, lambda held: held.ended("failed", monitor.progress, error=limit), "its failure")
                     log.error("job %s: %s", job.id, limit)
                     return
                 if self.stopping() and not monitor.cancel.is_set():
                     self.release(job.id)
                     return
-                self._end_held(job.id, lambda held: held.ended("cancelled", monitor.progress))
+                self._end(job.id, lambda held: held.ended("cancelled", monitor.progress), "its cancellation")
                 log.info("job %s: cancelled", job.id)
                 return
             except Exception as exc:  # any failure of one job is that job's, not the worker's
                 message = failure_text(exc, file=lambda path: Path(path).name)  # never server paths
-                self._end_held(job.id, lambda held: held.ended("failed", monitor.progress, error=message))
+                self._end(job.id, lambda held: held.ended("failed", monitor.progress, error=message),
+                          "its failure")
                 log.error("job %s: failed: %s\n%s", job.id, message, traceback.format_exc())
                 return
         artifacts = sorted(str(p.relative_to(output)) for p in output.rglob("*") if p.is_file())
         result = JobResult(psnr=report.aggregate.psnr.all, ssim=report.aggregate.ssim.all, artifacts=artifacts,
                            size_bytes=report.size.total_bytes, bits_per_texel=report.size.bits_per_texel)
-        done = self._end_held(job.id, lambda held: held.ended("succeeded", monitor.progress, result=result))
+        # The result describes itself before the store hears of it: if recording fails for good, or the store
+        # loses the record, recovery finds it complete on disk.
+        self.queue.keep_record(job.ended("succeeded", monitor.progress, result=result))
+        done = self._end(job.id, lambda held: held.ended("succeeded", monitor.progress, result=result),
+                         "its result")
         if done is not None and done.state == "succeeded":
             log.info("job %s: succeeded in %.1f s, %.2f dB", job.id, time.perf_counter() - started,
                      report.aggregate.psnr.all)
@@ -200,6 +225,12 @@ class Worker:
             self._recover()
 
     def _recover(self) -> None:
+        try:
+            self.queue.rebuild_if_needed()  # the store lost its records (or is new): back from the data folder
+        except StoreUnavailable as exc:
+            log.warning("rebuild of the job records skipped: %s", exc)
+        except OSError as exc:  # an unreadable data folder must not end the recovery thread; tried again next pass
+            log.error("rebuild of the job records failed: %s", exc)
         try:
             for job in self.queue.recover():
                 log.info("job %s: recovered -> %s", job.id, job.state)

@@ -44,7 +44,11 @@ def metric(server: Server, name: str) -> float:
 
 
 def files_of(environment: BcfEnvironment, job_id: str) -> dict[str, bool]:
-    return {kind: (environment.data_dir / kind / job_id).exists() for kind in ("inputs", "artifacts")}
+    """Whether the job still has input images, and an artifacts folder. Its inputs folder keeps the record
+    (job.json) after the images go: a lost job store is rebuilt from it."""
+    inputs = environment.data_dir / "inputs" / job_id
+    images = inputs.is_dir() and any(p.name != "job.json" for p in inputs.iterdir())
+    return {"inputs": images, "artifacts": (environment.data_dir / "artifacts" / job_id).exists()}
 
 
 def test_an_upload_below_the_disk_floor_is_507_before_it_is_read(tmp_path: Path) -> None:
