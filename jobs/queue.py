@@ -22,7 +22,7 @@ from huey import Huey, RedisHuey, SqliteHuey
 
 from bcf.core import staging_leftovers
 from bcf.jobs.records import FINAL_STATES, Job, utc_now
-from bcf.jobs.recovery import RECORD_FILE, RecoveryReport, rebuild_records, write_record
+from bcf.jobs.recovery import RECORD_FILE, RecoveryReport, finished_record, rebuild_records, write_record
 from bcf.jobs.settings import Settings
 from bcf.jobs.store import JobStore, StoreUnavailable, open_store, sqlite_failure
 

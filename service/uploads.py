@@ -212,8 +212,8 @@ def submit_upload(queue: JobQueue, upload: Upload, tenant: str) -> tuple[Job, bo
     except OSError as exc:
         if exc.errno not in _DISK_FULL:
             raise
-        raise DiskFull("the data directory's disk filled while the upload was stored (nothing was kept); free "
-                       "space, and keep some free with BCF_MIN_FREE_DISK_MB") from None
+        raise DiskFull("the data directory's disk is full: it filled while the upload was stored (nothing was "
+                       "kept); free space, and keep some free with BCF_MIN_FREE_DISK_MB") from None
 
 
 def _staged_and_submitted(queue: JobQueue, upload: Upload, tenant: str) -> tuple[Job, bool]:

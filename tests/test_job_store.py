@@ -313,7 +313,7 @@ def test_submit_material_stores_the_inputs_under_their_names_and_queues_once(tmp
     assert all((stored / role / name).read_bytes() == (CHAINMAIL / name).read_bytes()
                for role, name in CHAINMAIL_ROLES.items())
     assert not list((tmp_path / "first").rglob("*.png")), "the staged files are moved, not copied"
-    assert load_job_material(job, stored).source.files == load_texture_set(
+    assert load_job_material(job, stored, queue.settings).source.files == load_texture_set(
         MaterialFiles(**{role: CHAINMAIL / name for role, name in CHAINMAIL_ROLES.items()},
                       normal_convention="directx")).source.files
 
