@@ -18,11 +18,13 @@ from bcf.core.options import ResolvedOptions
 __all__ = ["FIXED_BYTES", "PER_SAMPLE_BYTES", "PER_TEXEL_BYTES", "MemoryBudgetError", "check_memory",
            "estimate_peak_memory", "physical_memory"]
 
-# Measured peaks (wood_peeling_paint_weathered scaled to 512² .. 4096², fast preset): 0.58, 0.96, 2.24, 6.34 GB;
-# 342 B a texel between 1K and 4K, rounded up, and the fixed part rounded up; 8192² estimates 24.1 GB.
-FIXED_BYTES = 700 * 10**6
-PER_TEXEL_BYTES = 350
-# Training's buffers grow with the batch: sampled features, activations and their gradients per sample.
+# Measured peak resident memory of `bcf compress` (wood_peeling_paint_weathered scaled to 512² .. 4096², one torch
+# thread, docs/BENCHMARKS.md "Memory per job"): fast 0.60 / 0.85 / 1.73 / 4.84 GB, default 1.80 GB at 2048² and
+# 4.93 GB at 4096²: 250-260 B a texel above 1K. Rounded up: 8192² with the default preset estimates 19.5 GB.
+FIXED_BYTES = 600 * 10**6
+PER_TEXEL_BYTES = 280
+# Training's buffers grow with the batch: sampled features, activations and their gradients per sample
+# (measured 620-760 B a sample between batches of 2^16 and 2^20 at 512²; rounded up).
 PER_SAMPLE_BYTES = 1_200
 
 

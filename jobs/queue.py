@@ -48,7 +48,14 @@ class JobQueue:
         else:
             settings.data_dir.mkdir(parents=True, exist_ok=True)
             self.huey = SqliteHuey("bcf", filename=str(settings.data_dir / "queue.db"), results=False)
-        self._task = self.huey.task(name=RUN_JOB_TASK)(runner or _submitting_only)
+        run = runner or _submitting_only
+
+        def run_job(job_id: str) -> None:
+            run(job_id)
+
+        # Huey names a task after its function's module as well as `name`: the submitter's and the workers'
+        # functions must share both, or workers find no task for the API's messages (only recovery re-sent them).
+        self._task = self.huey.task(name=RUN_JOB_TASK)(run_job)
         # After the queue, so that a rebuild (which may re-queue jobs) can run from the store's first operation.
         self.store: JobStore = open_store(settings, on_recreated=self._rebuild_lost)
 

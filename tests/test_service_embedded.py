@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import datetime
 import io
 import json
 import os
@@ -53,6 +54,9 @@ def test_submit_poll_download_and_decode_the_artifacts(service: Any, tmp_path: P
     done = service.wait_finished(job["id"])
     assert done["state"] == "succeeded", done["error"]
     assert done["progress"]["stage"] == "finished" and service.stored(job["id"]).attempts == 1
+    # The worker ran the API's own queue message, not one a recovery pass re-sent after BCF_STALE_AFTER_S (30 s).
+    waited = datetime.datetime.fromisoformat(done["started_at"]) - datetime.datetime.fromisoformat(done["created_at"])
+    assert waited.total_seconds() < 15, waited
     assert done["progress"]["phase"] == 2 and done["progress"]["iteration"] == TINY_OPTIONS["phase2_iterations"]
 
     archive = service.client.get(f"/v1/jobs/{job['id']}/artifacts")
