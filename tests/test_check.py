@@ -4,39 +4,13 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Callable
 
 import numpy as np
 import pytest
-import torch
 
 from bcf.core import REPORT_FILE
-from bcf.core import pipeline as compress
-from bcf.core.material import images
-from bcf.core.material.texture_set import load_material
-from bcf.core.options import CompressOptions
 from bcf_command import run_bcf
-
-ROOT = Path(__file__).resolve().parents[1]
-SAMPLE = ROOT / "examples" / "sample"
-
-
-@pytest.fixture(scope="module")
-def export_folder(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
-    """A real `compress_material` output of a 64x64 crop of the bundled sample (few iterations)."""
-    source = tmp_path_factory.mktemp("material") / "sample_64"
-    source.mkdir()
-    for name in ("albedo.png", "normal_gl.png", "arm.png"):
-        images.write_rgb(source / name, images.read_rgb(SAMPLE / name)[:64, :64], png_bits=8)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        folder = tmp_path_factory.mktemp("out") / "out"
-        options = CompressOptions(preset="fast", phase1_iterations=20, phase2_iterations=20, batch_size=1024)
-        compress.compress_material(load_material(source), options, folder)
-    finally:
-        torch.set_num_threads(threads)
-    yield folder
 
 
 def edited_baseline(folder: Path, target: Path, edit: Callable[[dict[str, Any]], None]) -> Path:

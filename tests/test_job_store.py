@@ -10,7 +10,7 @@ import datetime
 import threading
 import uuid
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import pytest
 import redis
@@ -22,21 +22,11 @@ from bcf.jobs.records import JOB_STATES, InputFile, Job, JobState, utc_now
 from bcf.jobs.settings import Settings
 from bcf.jobs.store import JobStore, RedisJobStore, SqliteJobStore
 from bcf.jobs.submission import StagedMaterial, load_job_material, submit_material
-from service_harness import CHAINMAIL, CHAINMAIL_ROLES, redis_server
+from service_harness import CHAINMAIL, CHAINMAIL_ROLES
 
 HOUR_AGO = utc_now() - datetime.timedelta(hours=1)
 LONG_AGO = datetime.datetime(2000, 1, 1, tzinfo=datetime.timezone.utc)
 QUEUE_DB = 5  # JobQueue uses the default "bcf" key prefix: keep it in a database of its own, flushed per test
-
-
-@pytest.fixture(scope="module")
-def redis_url(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
-    """A private redis-server for the module (each xdist worker process starts its own)."""
-    process, url = redis_server(tmp_path_factory.mktemp("redis"))
-    try:
-        yield url
-    finally:
-        process.stop()
 
 
 @pytest.fixture(params=["sqlite", "redis"])

@@ -12,7 +12,7 @@ import subprocess
 import uuid
 import zipfile
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import pytest
 import redis
@@ -45,15 +45,6 @@ def a_job(tenant: str = "default") -> Job:
     inputs = [InputFile(role="albedo", name="Color.png", stored_as="albedo/Color.png", sha256="0" * 64, bytes=1)]
     return Job(id=uuid.uuid4().hex[:16], name="test", options=JobOptions(), inputs=inputs,
                input_key=uuid.uuid4().hex, tenant=tenant)
-
-
-@pytest.fixture(scope="module")
-def redis_url(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
-    process, url = redis_server(tmp_path_factory.mktemp("redis"))
-    try:
-        yield url
-    finally:
-        process.stop()
 
 
 # ----------------------------------------------------------------------------------------------- the stores
