@@ -26,7 +26,7 @@ test: $(STAMP)
 	OMP_NUM_THREADS=1 $(BIN)/python -m pytest -n 2 tests
 
 # Builds the CPU image from docker/Dockerfile with buildah (no Docker daemon needed) and runs it: bcf --version,
-# a fast compress of the sample, and one job through Redis, the API and a worker (docker/README.md). Needs root.
+# a fast compress of the sample, and one job through Redis, the API and a worker (docker/README.md); as root.
 images:
 	docker/check_image.sh cpu
 

@@ -7,9 +7,11 @@
 #   3. in the built root: `bcf --version`, a `--preset fast` compress of examples/sample, and the compose
 #      topology: Redis, `bcf serve` and `bcf worker` in two containers sharing one /data, one job POSTed
 #      through the API until it succeeds and its artifacts zip is downloaded and checked.
-# Exits 0 only when every step passed. Needs root (buildah's storage, chroot isolation).
+# Exits 0 only when every step passed. Runs itself under sudo when not root.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+# buildah's storage in /var/lib/containers and chroot isolation need root.
+[ "$(id -u)" -eq 0 ] || exec sudo "$0" "$@"
 
 variant=${1:-cpu}
 case "$variant" in
@@ -70,6 +72,8 @@ cat "$WORK/pip/pip.conf"
 mounts=(-v "$PWD/$WORK/pip/pip.conf:/etc/pip.conf:ro")
 for value in $(sed -n -E 's/^(index-url|extra-index-url|find-links|cert|constraint) = //p' "$WORK/pip/pip.conf"); do
     path=${value#file://}
+    # A local PEP 503 index (.../simple) links to its files beside it (../../files/...): mount the mirror's root.
+    [ "$(basename "$path")" = simple ] && path=$(dirname "$path")
     if [ "${path:0:1}" = / ] && [ -e "$path" ]; then
         mounts+=(-v "$path:$path:ro")
     fi
