@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 DEMO_OUT ?= build/demo
 
-.PHONY: install demo test clean
+.PHONY: install demo test images images-cuda clean
 
 install: $(STAMP)
 
@@ -24,6 +24,15 @@ demo: $(STAMP)
 # steps up to 20x slower (threads spin-waiting on each other), and `bcf` subprocesses inherit the setting.
 test: $(STAMP)
 	OMP_NUM_THREADS=1 $(BIN)/python -m pytest -n 2 tests
+
+# Builds the CPU image from docker/Dockerfile with buildah (no Docker daemon needed) and runs it: bcf --version,
+# a fast compress of the sample, and one job through Redis, the API and a worker (docker/README.md); as root.
+images:
+	docker/check_image.sh cpu
+
+# The same for docker/Dockerfile.cuda (a GPU-less check: the CUDA build of torch, run on the CPU); several GB.
+images-cuda:
+	docker/check_image.sh cuda
 
 clean:
 	rm -rf $(VENV) build .pytest_cache
