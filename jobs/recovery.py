@@ -78,12 +78,16 @@ def read_record(folder: Path) -> Optional[Job]:
 
 
 def finished_record(queue: "JobQueue", job_id: str) -> Optional[Job]:
-    """The succeeded record in the job's artifacts folder, if the folder holds every file it names."""
-    folder = queue.artifacts_path(job_id)
-    job = read_record(folder)
-    if job is None or job.state != "succeeded" or job.result is None:
+    """The succeeded record of the job's complete result in its storage (`bcf.jobs.storage`): in the data folder,
+    the artifacts folder's job.json if the folder holds every file it names; in object storage, the commit
+    marker's. None also when the object storage does not answer (the next pass asks again)."""
+    from bcf.jobs.storage import ObjectStoreUnavailable
+
+    try:
+        return queue.storage.finished_record(job_id)
+    except ObjectStoreUnavailable as exc:
+        log.warning("job %s: its result could not be looked for: %s", job_id, exc)
         return None
-    return job if all((folder / name).is_file() for name in job.result.artifacts) else None
 
 
 def _from_inputs(job: Job) -> Job:

@@ -19,6 +19,7 @@ from pydantic import BaseModel, ConfigDict
 from bcf.core import (InputError, InspectedMaterial, JobOptions, MaterialFiles, Role, TextureSet, check_memory,
                       decode_texture_set, inspect_texture_set, resolve_material, resolve_options, result_identity)
 from bcf.jobs.settings import Settings
+from bcf.jobs.storage import ObjectStoreUnavailable
 from bcf.jobs.queue import JobQueue
 from bcf.jobs.records import DEFAULT_TENANT, InputFile, Job
 
@@ -75,13 +76,28 @@ def submit_material(queue: JobQueue, material: StagedMaterial, options: JobOptio
         for stored in job.inputs:
             (folder / stored.role).mkdir(parents=True)
             files[stored.role].rename(folder / stored.stored_as)  # staging shares the data directory's disk
+        queue.storage.put_inputs(job.id, folder)  # object storage: where the workers fetch them from
         stored_job, created = queue.submit(job)
     except BaseException:
         shutil.rmtree(folder, ignore_errors=True)
+        if queue.storage.remote:
+            _forget_inputs(queue, job.id)
         raise
     if not created:
         shutil.rmtree(folder, ignore_errors=True)  # the existing job has its own copy
+        if queue.storage.remote:
+            _forget_inputs(queue, job.id)
+    elif queue.storage.remote:
+        queue.remove_local_inputs(job.id)  # the local copy was staging: workers read the stored one
     return stored_job, created
+
+
+def _forget_inputs(queue: JobQueue, job_id: str) -> None:
+    """Inputs uploaded for a job that was not created (a duplicate, or a failed submission)."""
+    try:
+        queue.storage.remove_inputs(job_id)
+    except ObjectStoreUnavailable:
+        pass  # unreferenced objects: nothing reads them
 
 
 def _check_memory(inspected: InspectedMaterial, options: JobOptions, settings: Settings) -> None:
