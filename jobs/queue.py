@@ -21,6 +21,7 @@ from typing import Callable, Optional
 from huey import Huey, RedisHuey, SqliteHuey
 
 from bcf.core import staging_leftovers
+from bcf.jobs.callbacks import send_callback
 from bcf.jobs.records import FINAL_STATES, Job, utc_now
 from bcf.jobs.recovery import RECORD_FILE, RecoveryReport, finished_record, rebuild_records, write_record
 from bcf.jobs.settings import Settings
@@ -94,7 +95,7 @@ class JobQueue:
 
         job = self.store.update(job_id, change)
         if job is not None and job.state == "cancelled":
-            self.settle(job)
+            self.finished(job)
         return job
 
     def keep_record(self, job: Job) -> None:
@@ -129,6 +130,11 @@ class JobQueue:
             for entry in folder.iterdir():
                 if entry.name != RECORD_FILE:
                     shutil.rmtree(entry, ignore_errors=True) if entry.is_dir() else entry.unlink(missing_ok=True)
+
+    def finished(self, job: Job) -> None:
+        """A job that just ended: `settle` it, and POST it to its callback_url (in the background)."""
+        self.settle(job)
+        send_callback(job, self.settings)
 
     def rebuild(self) -> RecoveryReport:
         """Restore the records the store lacks from the data folder (`bcf.jobs.recovery.rebuild_records`)."""
@@ -168,7 +174,7 @@ class JobQueue:
                     if after.state == "queued":
                         self.enqueue(after.id)
                     elif after.state in FINAL_STATES:
-                        self.settle(after)
+                        self.finished(after)
                     changed.append(after)
         queued, _ = self.store.list({"queued"})
         if queued:

@@ -82,6 +82,8 @@ class JobView(BaseModel):
     started_at: Optional[datetime.datetime] = None
     finished_at: Optional[datetime.datetime] = None
     result: Optional[JobResult] = None
+    callback_url: Optional[str] = Field(None, description="where the job object is POSTed when the job ends "
+                                        "(signed with BCF_CALLBACK_SECRET; docs/SERVICE.md, Callbacks)")
     purged_at: Optional[datetime.datetime] = Field(
         None, description="when the job's inputs and result files were removed (DELETE /v1/jobs/{id}?purge=true, "
                           "or BCF_RETENTION_DAYS after it finished); the record stays as a tombstone")

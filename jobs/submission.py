@@ -39,7 +39,7 @@ class StagedMaterial(BaseModel):
 
 
 def _new_job(material: StagedMaterial, files: dict[Role, Path], inspected: InspectedMaterial, options: JobOptions,
-             tenant: str) -> Job:
+             tenant: str, callback_url: Optional[str]) -> Job:
     """The job's record. Its input key hashes the tenant and what decides the result (`bcf.core.result_identity`:
     the inputs' bytes by role, the normal convention and size they were loaded with, the resolved options
     without the device) and the baselines, not the names: the same files under other names are the same job,
@@ -54,11 +54,12 @@ def _new_job(material: StagedMaterial, files: dict[Role, Path], inspected: Inspe
     inputs = [InputFile(role=role, name=material.client_names.get(role, path.name), stored_as=f"{role}/{path.name}",
                         sha256=hashes[role], bytes=path.stat().st_size) for role, path in files.items()]
     return Job(id=uuid.uuid4().hex[:16], name=source.name, options=resolved, inputs=inputs,
-               input_key=hashlib.sha256(key.encode()).hexdigest(), notes=list(inspected.notes), tenant=tenant)
+               input_key=hashlib.sha256(key.encode()).hexdigest(), notes=list(inspected.notes), tenant=tenant,
+               callback_url=callback_url)
 
 
 def submit_material(queue: JobQueue, material: StagedMaterial, options: JobOptions,
-                    tenant: str = DEFAULT_TENANT) -> tuple[Job, bool]:
+                    tenant: str = DEFAULT_TENANT, callback_url: Optional[str] = None) -> tuple[Job, bool]:
     """Validate the material from its files' headers (roles, formats, sizes, the pixel limit; no pixel is decoded
     here: the worker decodes, and a corrupt file fails the job), store its inputs, queue the job: (job, created). Resubmitting a queued, running or succeeded job's inputs and options
     returns that job. Raises `bcf.core.InputError` for whatever the client must fix."""
@@ -70,7 +71,7 @@ def submit_material(queue: JobQueue, material: StagedMaterial, options: JobOptio
     files = resolved.roles()
     inspected = inspect_texture_set(resolved, name=material.name, max_pixels=queue.settings.max_texture_pixels)
     _check_memory(inspected, options, queue.settings)
-    job = _new_job(material, files, inspected, options, tenant)
+    job = _new_job(material, files, inspected, options, tenant, callback_url)
     folder = queue.inputs_path(job.id)
     try:  # inputs in place before the job is queued: a worker may start it at once
         for stored in job.inputs:

@@ -133,10 +133,10 @@ class Worker:
 
     def _end(self, job_id: str, change: Callable[[Job], Job], what: str) -> Optional[Job]:
         """Record the outcome (`_record`), then settle the job: its record beside its files, its input images
-        removed (`JobQueue.settle`)."""
+        removed, its callback sent (`JobQueue.finished`)."""
         job = self._record(job_id, change, what)
         if job is not None and job.state in FINAL_STATES:
-            self.queue.settle(job)
+            self.queue.finished(job)
         return job
 
     def release(self, job_id: str) -> None:
