@@ -82,8 +82,6 @@ class JobView(BaseModel):
     started_at: Optional[datetime.datetime] = None
     finished_at: Optional[datetime.datetime] = None
     result: Optional[JobResult] = None
-    callback_url: Optional[str] = Field(None, description="where the job object is POSTed when the job ends "
-                                        "(signed with BCF_CALLBACK_SECRET; docs/SERVICE.md, Callbacks)")
     purged_at: Optional[datetime.datetime] = Field(
         None, description="when the job's inputs and result files were removed (DELETE /v1/jobs/{id}?purge=true, "
                           "or BCF_RETENTION_DAYS after it finished); the record stays as a tombstone")
@@ -99,6 +97,9 @@ class Job(JobView, _Model):
     attempts: int = Field(0, description="times a worker started the job")
     worker: Optional[str] = None
     cancel_requested: bool = False
+    # Not shown back: a receiver's URL may carry a token of its own.
+    callback_url: Optional[str] = Field(None, description="where the job object is POSTed when the job ends "
+                                        "(signed with BCF_CALLBACK_SECRET; docs/SERVICE.md, Callbacks)")
     heartbeat_at: Optional[datetime.datetime] = None
 
     def ended(self, state: JobState, last: Optional[JobProgress] = None, **fields: object) -> "Job":

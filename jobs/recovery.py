@@ -115,7 +115,7 @@ def _recover_one(queue: "JobQueue", job_id: str, report: RecoveryReport) -> None
             queue.keep_record(stored)  # a job stored before records were kept beside its files
             report.kept.append(job_id)
         return
-    submitted = read_record(queue.inputs_path(job_id))
+    submitted = read_record(queue.inputs_path(job_id)) or queue.storage.record(job_id)
     record = finished or (None if submitted is None else _from_inputs(submitted))
     if record is None:
         kinds = [kind for kind, path in (("inputs", queue.inputs_path(job_id)),
@@ -142,6 +142,7 @@ def rebuild_records(queue: "JobQueue") -> RecoveryReport:
     on disk. Folders without a record are reported, never removed. Running it again changes nothing more."""
     report = RecoveryReport()
     data = queue.settings.data_dir
-    for job_id in sorted(_job_folders(data / "inputs") | _job_folders(data / "artifacts")):
+    stored = queue.storage.job_ids()  # object storage: the jobs it holds (the data folder is scratch)
+    for job_id in sorted(_job_folders(data / "inputs") | _job_folders(data / "artifacts") | stored):
         _recover_one(queue, job_id, report)
     return report

@@ -25,6 +25,7 @@ from pydantic import BaseModel, ValidationError
 
 from bcf.jobs.records import Job
 from bcf.jobs.settings import Settings
+from bcf.jobs.store import StoreUnavailable
 
 __all__ = ["COMMIT_MARKER", "JobStorage", "LocalStorage", "S3Storage", "ObjectStoreUnavailable", "open_storage"]
 
@@ -32,9 +33,10 @@ COMMIT_MARKER = "COMMITTED.json"
 RECORD_FILE = "job.json"  # as bcf.jobs.recovery names it (imported from there would be circular)
 
 
-class ObjectStoreUnavailable(Exception):
+class ObjectStoreUnavailable(StoreUnavailable):
     """The object store did not answer, or refused, after botocore's retries: the job's attempt fails and is
-    retried (`BCF_MAX_ATTEMPTS`)."""
+    retried (`BCF_MAX_ATTEMPTS`). A kind of `StoreUnavailable`, so that what retries or reports a job store
+    that does not answer (recovery passes, `bcf admin recover`) does the same for it."""
 
 
 class Committed(BaseModel):
@@ -61,6 +63,12 @@ class JobStorage(Protocol):
 
     def put_record(self, job_id: str, job: Job) -> None:
         """The job's record beside its stored inputs."""
+
+    def job_ids(self) -> set[str]:
+        """Ids of the jobs the storage holds inputs or results of (for a rebuild of lost records)."""
+
+    def record(self, job_id: str) -> Optional[Job]:
+        """The record kept beside the job's stored inputs, if there is a readable one."""
 
     def put_artifacts(self, job_id: str, folder: Path, record: Job) -> None:
         """Commit the files `record.result.artifacts` in `folder` as the job's result, all or nothing."""
@@ -94,6 +102,12 @@ class LocalStorage:
 
     def put_record(self, job_id: str, job: Job) -> None:
         pass  # the queue writes it into the inputs folder
+
+    def job_ids(self) -> set[str]:
+        return set()  # the rebuild scans the data folder itself
+
+    def record(self, job_id: str) -> Optional[Job]:
+        return None  # the rebuild reads the data folder's job.json itself
 
     def put_artifacts(self, job_id: str, folder: Path, record: Job) -> None:
         pass  # the result was staged and renamed into place by `compress_material`; its job.json marks it
@@ -184,6 +198,26 @@ class S3Storage:
     def put_record(self, job_id: str, job: Job) -> None:
         self._call("record", self.client.put_object, Bucket=self.bucket, Key=self._key("inputs", job_id, RECORD_FILE),
                    Body=job.model_dump_json(indent=1).encode(), ContentType="application/json")
+
+    def job_ids(self) -> set[str]:
+        ids: set[str] = set()
+        paginator = self.client.get_paginator("list_objects_v2")
+        for kind in ("inputs", "artifacts"):
+            prefix = self._key(kind) + "/"
+            pages = self._call("listing", lambda: list(paginator.paginate(Bucket=self.bucket, Prefix=prefix,
+                                                                          Delimiter="/")))
+            ids |= {common["Prefix"][len(prefix):].strip("/") for page in pages
+                    for common in page.get("CommonPrefixes", [])}
+        return ids
+
+    def record(self, job_id: str) -> Optional[Job]:
+        try:
+            body = self._call("record", self.client.get_object, Bucket=self.bucket,
+                              Key=self._key("inputs", job_id, RECORD_FILE))["Body"].read()
+            job = Job.model_validate_json(body)
+        except (FileNotFoundError, ValidationError, ValueError):
+            return None
+        return job if job.id == job_id else None
 
     def put_artifacts(self, job_id: str, folder: Path, record: Job) -> None:
         attempt = f"attempt-{uuid.uuid4().hex[:12]}"

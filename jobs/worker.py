@@ -276,9 +276,10 @@ class Worker:
                                                    initial_delay=0.1, backoff=1.15, max_delay=1.0,
                                                    graceful_signal="TERM")
         self._consumer_stop = consumer.stop_flag  # set by huey on a signal: our jobs stop too
-        log.info("worker %s: %s mode, device %s, %d at a time, data in %s", self.id,
+        log.info("worker %s: %s mode, device %s, %d at a time, data in %s%s", self.id,
                  "farm (Redis)" if self.settings.farm_mode else "embedded (SQLite)", self.device, concurrency,
-                 self.settings.data_dir)
+                 self.settings.data_dir, f", inputs and results in {self.settings.storage_url}"
+                 if self.settings.storage_url else "")
         self._recover()
         recovery = threading.Thread(target=self._recover_forever, name="recovery", daemon=True)
         recovery.start()

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Iterator
 
 import pytest
+import redis
 
 from bcf.core import load_export
 from service_harness import (TINY_OPTIONS, BcfEnvironment, Process, S3Server, Server, redis_server, tiny_material,
@@ -27,6 +28,7 @@ class Farm:
     api: Server
     api_env: BcfEnvironment
     workers: list[Process]
+    redis_url: str
 
     def job_folder(self, kind: str, job_id: str) -> Path:
         """Where the S3 server keeps the job's objects (its bucket is a folder)."""
@@ -53,7 +55,7 @@ def farm(tmp_path: Path) -> Iterator[Farm]:
     api_env = _environment(tmp_path / "api", s3, url)
     api = api_env.serve()
     workers = [_environment(tmp_path / f"worker{n}", s3, url).worker() for n in (1, 2)]
-    yield Farm(s3, api, api_env, workers)
+    yield Farm(s3, api, api_env, workers, url)
     for process in [*workers, api, s3, redis]:
         process.stop()
 
@@ -89,6 +91,15 @@ def test_jobs_run_on_workers_without_a_shared_folder_through_object_storage(farm
     for environment_root in (farm.api_env.root, *(w.log.parent for w in farm.workers)):
         leftover = [p for p in (environment_root / "data" / "artifacts").rglob("*") if p.is_file()]
         assert leftover == [], leftover
+
+    # Redis flushed: the workers' recovery pass rebuilds the records from the bucket (no data folder has them).
+    redis.Redis.from_url(farm.redis_url).flushdb()
+    assert farm.api.client.get(f"/v1/jobs/{job_id}").status_code == 404
+    for before in finished:
+        answer = wait_until(lambda: (r := farm.api.client.get(f"/v1/jobs/{before['id']}")).status_code == 200 and r,
+                            60, f"job {before['id']} to be restored", logs=tuple(w.log for w in farm.workers))
+        assert answer.json()["state"] == "succeeded" and answer.json()["result"] == before["result"]
+    assert load_export(_download(farm, job_id, tmp_path / "again")).manifest == exported.manifest
 
     purged = farm.api.client.delete(f"/v1/jobs/{job_id}", params={"purge": "true"})
     assert purged.status_code == 200 and purged.json()["purged_at"]
