@@ -7,6 +7,7 @@ import hashlib
 import hmac
 import json
 import threading
+from datetime import datetime
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from typing import Any, Iterator
@@ -24,12 +25,16 @@ class Receiver:
     def __init__(self, failures: int = 0):
         self.requests: list[tuple[dict[str, str], bytes]] = []
         self.failures = failures
+        self.hold = False  # True: answer nothing until `released` is set (a receiver that hangs)
+        self.released = threading.Event()
         receiver = self
 
         class Handler(BaseHTTPRequestHandler):
             def do_POST(self) -> None:  # noqa: N802 (the http.server name)
                 body = self.rfile.read(int(self.headers.get("Content-Length", 0)))
                 receiver.requests.append(({k.lower(): v for k, v in self.headers.items()}, body))
+                if receiver.hold:
+                    receiver.released.wait(60)
                 self.send_response(500 if len(receiver.requests) <= receiver.failures else 200)
                 self.send_header("Content-Length", "0")
                 self.end_headers()
@@ -42,6 +47,7 @@ class Receiver:
         threading.Thread(target=self.server.serve_forever, daemon=True).start()
 
     def close(self) -> None:
+        self.released.set()
         self.server.shutdown()
         self.server.server_close()
 
@@ -84,6 +90,27 @@ def test_a_finished_job_is_posted_to_its_callback_url_signed(tmp_path: Path, rec
         assert posted["id"] == job["id"] and posted["state"] == "succeeded"
         assert posted["result"]["psnr"] == done["result"]["psnr"]
         assert "tenant" not in posted and "input_key" not in posted  # the public job object only
+
+
+def test_a_receiver_that_hangs_does_not_hold_up_the_worker(tmp_path: Path, receiver: Receiver) -> None:
+    receiver.hold = True
+    server = BcfEnvironment(tmp_path, callback_secret=SECRET).serve(workers=1)  # one worker: jobs one by one
+    try:
+        first = _submit(server, 63, receiver.url)
+        second = server.client.post("/v1/jobs", files=tiny_material(64), data={"options": json.dumps(TINY_OPTIONS)})
+        done = server.wait_finished(first["id"], timeout=180)
+        assert done["state"] == "succeeded"
+        wait_until(lambda: receiver.requests, 30, "the callback request", logs=(server.log,))
+        after = server.wait_finished(second.json()["id"], timeout=180)
+        assert after["state"] == "succeeded"
+    finally:
+        server.stop()
+    # The worker started the next job at once, while the first job's callback still waited for its answer: a
+    # worker that waited for it would have started only after its first POST timed out (10 s), and retried.
+    gap = datetime.fromisoformat(after["started_at"]) - datetime.fromisoformat(done["finished_at"])
+    assert gap.total_seconds() < 5, gap
+    assert gap.total_seconds() > 0  # it did run after the first
+    assert receiver.requests[0][0]["x-bcf-job"] == first["id"]
 
 
 def test_a_cancelled_queued_job_is_posted_too(tmp_path: Path, receiver: Receiver) -> None:
