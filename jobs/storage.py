@@ -19,7 +19,7 @@ from __future__ import annotations
 import shutil
 import uuid
 from pathlib import Path
-from typing import IO, Optional, Protocol
+from typing import IO, Any, Callable, Optional, Protocol
 
 from pydantic import BaseModel, ValidationError
 
@@ -151,7 +151,9 @@ class S3Storage:
     def _key(self, *parts: str) -> str:
         return "/".join(p for p in (self.prefix, *parts) if p)
 
-    def _call(self, what: str, call, *args: object, **kwargs: object):  # type: ignore[no-untyped-def]
+    def _call(self, what: str, call: Callable[..., Any], *args: object, **kwargs: object) -> Any:
+        """`call(*args, **kwargs)`; a missing object is FileNotFoundError, any other failure (after botocore's
+        retries) ObjectStoreUnavailable naming the store and what was being done."""
         from botocore.exceptions import BotoCoreError, ClientError
 
         try:

@@ -227,8 +227,9 @@ class Worker:
 
     def _storage_failed(self, job: Job, exc: ObjectStoreUnavailable, progress: JobProgress) -> None:
         """Object storage failed the attempt: back in the queue while attempts are left, else failed saying why."""
-        if self.queue.storage.remote:
+        if self.queue.storage.remote:  # scratch copies: the next attempt, on any worker, fetches the inputs again
             shutil.rmtree(self.queue.artifacts_path(job.id), ignore_errors=True)
+            self.queue.remove_local_inputs(job.id)
         if job.attempts < self.settings.max_attempts:
             log.warning("job %s: attempt %d of %d failed, object storage unavailable (%s); back in the queue",
                         job.id, job.attempts, self.settings.max_attempts, exc)
