@@ -21,9 +21,11 @@ from typing import Callable, Optional
 from huey import Huey, RedisHuey, SqliteHuey
 
 from bcf.core import staging_leftovers
+from bcf.jobs.callbacks import send_callback
 from bcf.jobs.records import FINAL_STATES, Job, utc_now
 from bcf.jobs.recovery import RECORD_FILE, RecoveryReport, finished_record, rebuild_records, write_record
 from bcf.jobs.settings import Settings
+from bcf.jobs.storage import JobStorage, ObjectStoreUnavailable, open_storage
 from bcf.jobs.store import JobStore, StoreUnavailable, open_store, sqlite_failure
 
 __all__ = ["JobQueue", "RUN_JOB_TASK"]
@@ -48,6 +50,7 @@ class JobQueue:
         else:
             settings.data_dir.mkdir(parents=True, exist_ok=True)
             self.huey = SqliteHuey("bcf", filename=str(settings.data_dir / "queue.db"), results=False)
+        self.storage: JobStorage = open_storage(settings)  # inputs and results: the data folder, or S3
         run = runner or _submitting_only
 
         def run_job(job_id: str) -> None:
@@ -92,7 +95,7 @@ class JobQueue:
 
         job = self.store.update(job_id, change)
         if job is not None and job.state == "cancelled":
-            self.settle(job)
+            self.finished(job)
         return job
 
     def keep_record(self, job: Job) -> None:
@@ -101,6 +104,11 @@ class JobQueue:
         write_record(self.inputs_path(job.id), job)
         if job.state == "succeeded" and job.purged_at is None:
             write_record(self.artifacts_path(job.id), job)
+        if self.storage.remote:
+            try:  # a copy, as the files above: the store has the record
+                self.storage.put_record(job.id, job)
+            except ObjectStoreUnavailable as exc:
+                log.warning("job %s: its record was not copied to object storage: %s", job.id, exc)
 
     def settle(self, job: Job) -> None:
         """A job whose outcome is stored: its record kept beside its files and, once it ended, its input images
@@ -108,14 +116,25 @@ class JobQueue:
         rebuild. Jobs still queued or running keep their inputs."""
         self.keep_record(job)
         if job.state in FINAL_STATES:
-            self._remove_input_files(job.id)
+            self.remove_local_inputs(job.id)
+            if self.storage.remote:
+                try:
+                    self.storage.remove_inputs(job.id)
+                except ObjectStoreUnavailable as exc:  # left behind, harmless: a purge removes them
+                    log.warning("job %s: its inputs were not removed from object storage: %s", job.id, exc)
 
-    def _remove_input_files(self, job_id: str) -> None:
+    def remove_local_inputs(self, job_id: str) -> None:
+        """The job's input images in the data folder, not its job.json."""
         folder = self.inputs_path(job_id)
         if folder.is_dir():
             for entry in folder.iterdir():
                 if entry.name != RECORD_FILE:
                     shutil.rmtree(entry, ignore_errors=True) if entry.is_dir() else entry.unlink(missing_ok=True)
+
+    def finished(self, job: Job) -> None:
+        """A job that just ended: `settle` it, and POST it to its callback_url (in the background)."""
+        self.settle(job)
+        send_callback(job, self.settings)
 
     def rebuild(self) -> RecoveryReport:
         """Restore the records the store lacks from the data folder (`bcf.jobs.recovery.rebuild_records`)."""
@@ -155,7 +174,7 @@ class JobQueue:
                     if after.state == "queued":
                         self.enqueue(after.id)
                     elif after.state in FINAL_STATES:
-                        self.settle(after)
+                        self.finished(after)
                     changed.append(after)
         queued, _ = self.store.list({"queued"})
         if queued:
@@ -197,7 +216,8 @@ class JobQueue:
         try:
             with handle, zipfile.ZipFile(handle, "w", zipfile.ZIP_DEFLATED) as archive:
                 for name in job.result.artifacts if job.result else []:
-                    archive.write(self.artifacts_path(job.id) / name, name)
+                    with self.storage.open_artifact(job.id, name) as source, archive.open(name, "w") as target:
+                        shutil.copyfileobj(source, target, 2**20)
         except BaseException:
             Path(handle.name).unlink(missing_ok=True)
             raise
@@ -213,6 +233,12 @@ class JobQueue:
         job = self.store.update(job_id, change)
         if job is not None and job.purged_at is not None:
             shutil.rmtree(self.artifacts_path(job.id), ignore_errors=True)
+            if self.storage.remote:
+                try:
+                    self.storage.remove_artifacts(job.id)
+                    self.storage.remove_inputs(job.id)
+                except ObjectStoreUnavailable as exc:  # the tombstone stands: nothing serves these objects
+                    log.warning("job %s: purged, but its objects were not all removed: %s", job.id, exc)
             self.settle(job)  # the tombstone is what a rebuild restores
         return job
 

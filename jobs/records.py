@@ -97,6 +97,9 @@ class Job(JobView, _Model):
     attempts: int = Field(0, description="times a worker started the job")
     worker: Optional[str] = None
     cancel_requested: bool = False
+    # Not shown back: a receiver's URL may carry a token of its own.
+    callback_url: Optional[str] = Field(None, description="where the job object is POSTed when the job ends "
+                                        "(signed with BCF_CALLBACK_SECRET; docs/SERVICE.md, Callbacks)")
     heartbeat_at: Optional[datetime.datetime] = None
 
     def ended(self, state: JobState, last: Optional[JobProgress] = None, **fields: object) -> "Job":

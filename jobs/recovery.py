@@ -78,12 +78,16 @@ def read_record(folder: Path) -> Optional[Job]:
 
 
 def finished_record(queue: "JobQueue", job_id: str) -> Optional[Job]:
-    """The succeeded record in the job's artifacts folder, if the folder holds every file it names."""
-    folder = queue.artifacts_path(job_id)
-    job = read_record(folder)
-    if job is None or job.state != "succeeded" or job.result is None:
+    """The succeeded record of the job's complete result in its storage (`bcf.jobs.storage`): in the data folder,
+    the artifacts folder's job.json if the folder holds every file it names; in object storage, the commit
+    marker's. None also when the object storage does not answer (the next pass asks again)."""
+    from bcf.jobs.storage import ObjectStoreUnavailable
+
+    try:
+        return queue.storage.finished_record(job_id)
+    except ObjectStoreUnavailable as exc:
+        log.warning("job %s: its result could not be looked for: %s", job_id, exc)
         return None
-    return job if all((folder / name).is_file() for name in job.result.artifacts) else None
 
 
 def _from_inputs(job: Job) -> Job:
@@ -111,7 +115,7 @@ def _recover_one(queue: "JobQueue", job_id: str, report: RecoveryReport) -> None
             queue.keep_record(stored)  # a job stored before records were kept beside its files
             report.kept.append(job_id)
         return
-    submitted = read_record(queue.inputs_path(job_id))
+    submitted = read_record(queue.inputs_path(job_id)) or queue.storage.record(job_id)
     record = finished or (None if submitted is None else _from_inputs(submitted))
     if record is None:
         kinds = [kind for kind, path in (("inputs", queue.inputs_path(job_id)),
@@ -138,6 +142,7 @@ def rebuild_records(queue: "JobQueue") -> RecoveryReport:
     on disk. Folders without a record are reported, never removed. Running it again changes nothing more."""
     report = RecoveryReport()
     data = queue.settings.data_dir
-    for job_id in sorted(_job_folders(data / "inputs") | _job_folders(data / "artifacts")):
+    stored = queue.storage.job_ids()  # object storage: the jobs it holds (the data folder is scratch)
+    for job_id in sorted(_job_folders(data / "inputs") | _job_folders(data / "artifacts") | stored):
         _recover_one(queue, job_id, report)
     return report

@@ -56,6 +56,19 @@ class Settings(BaseSettings):
                                             "results; then its files are removed and the record kept as a "
                                             "tombstone; none: kept until purged")
 
+    storage_url: Optional[str] = Field(
+        None, description="s3://bucket/prefix: uploaded inputs and job results in S3-compatible object storage "
+        "(credentials and endpoint from the standard AWS_* variables), and BCF_DATA_DIR is scratch; none: "
+        "they live in BCF_DATA_DIR, which every worker must mount")
+    storage_timeout_s: float = Field(30.0, gt=0, description="connect and read timeout of one object storage "
+                                     "request, in seconds")
+    storage_retries: int = Field(4, ge=1, description="tries of one object storage request (botocore's standard "
+                                 "retries, with backoff) before the job's attempt fails")
+    callback_secret: Optional[str] = Field(None, description="key of the HMAC-SHA256 signature of job callbacks "
+                                           "(X-Bcf-Signature header); none: callbacks are sent unsigned")
+    callback_attempts: int = Field(5, ge=1, description="tries of one job callback POST, with exponential "
+                                   "backoff, before it is given up (logged)")
+
     @field_validator("api_tokens", mode="before")
     @classmethod
     def _split_tokens(cls, value: object) -> object:
@@ -70,6 +83,15 @@ class Settings(BaseSettings):
             return None
         if value is not None and not value.startswith(("redis://", "rediss://", "unix://")):
             raise ValueError(f"BCF_QUEUE_URL must be a redis://, rediss:// or unix:// URL, got {value!r}")
+        return value
+
+    @field_validator("storage_url")
+    @classmethod
+    def _s3_only(cls, value: Optional[str]) -> Optional[str]:
+        if value is not None and not value.strip():
+            return None
+        if value is not None and (not value.startswith("s3://") or not value.removeprefix("s3://").split("/")[0]):
+            raise ValueError(f"BCF_STORAGE_URL must be an s3://bucket/prefix URL, got {value!r}")
         return value
 
     @field_validator("api_tokens")

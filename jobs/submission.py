@@ -19,6 +19,7 @@ from pydantic import BaseModel, ConfigDict
 from bcf.core import (InputError, InspectedMaterial, JobOptions, MaterialFiles, Role, TextureSet, check_memory,
                       decode_texture_set, inspect_texture_set, resolve_material, resolve_options, result_identity)
 from bcf.jobs.settings import Settings
+from bcf.jobs.storage import ObjectStoreUnavailable
 from bcf.jobs.queue import JobQueue
 from bcf.jobs.records import DEFAULT_TENANT, InputFile, Job
 
@@ -38,7 +39,7 @@ class StagedMaterial(BaseModel):
 
 
 def _new_job(material: StagedMaterial, files: dict[Role, Path], inspected: InspectedMaterial, options: JobOptions,
-             tenant: str) -> Job:
+             tenant: str, callback_url: Optional[str]) -> Job:
     """The job's record. Its input key hashes the tenant and what decides the result (`bcf.core.result_identity`:
     the inputs' bytes by role, the normal convention and size they were loaded with, the resolved options
     without the device) and the baselines, not the names: the same files under other names are the same job,
@@ -53,11 +54,12 @@ def _new_job(material: StagedMaterial, files: dict[Role, Path], inspected: Inspe
     inputs = [InputFile(role=role, name=material.client_names.get(role, path.name), stored_as=f"{role}/{path.name}",
                         sha256=hashes[role], bytes=path.stat().st_size) for role, path in files.items()]
     return Job(id=uuid.uuid4().hex[:16], name=source.name, options=resolved, inputs=inputs,
-               input_key=hashlib.sha256(key.encode()).hexdigest(), notes=list(inspected.notes), tenant=tenant)
+               input_key=hashlib.sha256(key.encode()).hexdigest(), notes=list(inspected.notes), tenant=tenant,
+               callback_url=callback_url)
 
 
 def submit_material(queue: JobQueue, material: StagedMaterial, options: JobOptions,
-                    tenant: str = DEFAULT_TENANT) -> tuple[Job, bool]:
+                    tenant: str = DEFAULT_TENANT, callback_url: Optional[str] = None) -> tuple[Job, bool]:
     """Validate the material from its files' headers (roles, formats, sizes, the pixel limit; no pixel is decoded
     here: the worker decodes, and a corrupt file fails the job), store its inputs, queue the job: (job, created). Resubmitting a queued, running or succeeded job's inputs and options
     returns that job. Raises `bcf.core.InputError` for whatever the client must fix."""
@@ -69,19 +71,34 @@ def submit_material(queue: JobQueue, material: StagedMaterial, options: JobOptio
     files = resolved.roles()
     inspected = inspect_texture_set(resolved, name=material.name, max_pixels=queue.settings.max_texture_pixels)
     _check_memory(inspected, options, queue.settings)
-    job = _new_job(material, files, inspected, options, tenant)
+    job = _new_job(material, files, inspected, options, tenant, callback_url)
     folder = queue.inputs_path(job.id)
     try:  # inputs in place before the job is queued: a worker may start it at once
         for stored in job.inputs:
             (folder / stored.role).mkdir(parents=True)
             files[stored.role].rename(folder / stored.stored_as)  # staging shares the data directory's disk
+        queue.storage.put_inputs(job.id, folder)  # object storage: where the workers fetch them from
         stored_job, created = queue.submit(job)
     except BaseException:
         shutil.rmtree(folder, ignore_errors=True)
+        if queue.storage.remote:
+            _forget_inputs(queue, job.id)
         raise
     if not created:
         shutil.rmtree(folder, ignore_errors=True)  # the existing job has its own copy
+        if queue.storage.remote:
+            _forget_inputs(queue, job.id)
+    elif queue.storage.remote:
+        queue.remove_local_inputs(job.id)  # the local copy was staging: workers read the stored one
     return stored_job, created
+
+
+def _forget_inputs(queue: JobQueue, job_id: str) -> None:
+    """Inputs uploaded for a job that was not created (a duplicate, or a failed submission)."""
+    try:
+        queue.storage.remove_inputs(job_id)
+    except ObjectStoreUnavailable:
+        pass  # unreferenced objects: nothing reads them
 
 
 def _check_memory(inspected: InspectedMaterial, options: JobOptions, settings: Settings) -> None:

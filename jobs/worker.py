@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import os
+import shutil
 import socket
 import threading
 import time
@@ -22,6 +23,7 @@ from bcf.core import TrainingProgress, TrainingStopped, compress_material, failu
 from bcf.jobs.queue import JobQueue
 from bcf.jobs.records import FINAL_STATES, Job, JobProgress, JobResult, utc_now
 from bcf.jobs.settings import Settings
+from bcf.jobs.storage import ObjectStoreUnavailable
 from bcf.jobs.store import JobStore, StoreUnavailable
 from bcf.jobs.submission import load_job_material
 
@@ -131,18 +133,19 @@ class Worker:
 
     def _end(self, job_id: str, change: Callable[[Job], Job], what: str) -> Optional[Job]:
         """Record the outcome (`_record`), then settle the job: its record beside its files, its input images
-        removed (`JobQueue.settle`)."""
+        removed, its callback sent (`JobQueue.finished`)."""
         job = self._record(job_id, change, what)
         if job is not None and job.state in FINAL_STATES:
-            self.queue.settle(job)
+            self.queue.finished(job)
         return job
 
     def release(self, job_id: str) -> None:
-        """Give a job this worker holds back to the queue (shutdown): another worker restarts it."""
+        """Give a job this worker holds back to the queue (shutdown, an object store failure): another worker
+        restarts it."""
         job = self._update_held(job_id, Job.requeued)
         if job is not None and job.state == "queued":
             self.queue.enqueue(job_id)
-            log.info("job %s: back in the queue (worker shutting down)", job_id)
+            log.info("job %s: back in the queue", job_id)
 
     def run_job(self, job_id: str) -> None:
         """The Huey task: claim the job, compress, record the outcome. Never raises for a job's own failure."""
@@ -172,12 +175,26 @@ class Worker:
             def should_stop() -> bool:
                 return monitor.cancel.is_set() or self.stopping() or time.monotonic() > deadline
             try:
+                self.queue.storage.fetch_inputs(job.id, self.queue.inputs_path(job.id))
                 texture_set = load_job_material(job, self.queue.inputs_path(job.id), self.settings)
                 self._record_notes(job.id, texture_set.notes)
                 report = compress_material(
                     texture_set, resolved, output, progress=monitor.on_progress,
                     should_stop=should_stop, overwrite=True,
                     baselines=job.options.baselines, note=monitor.on_note)
+                artifacts = sorted(str(p.relative_to(output)) for p in output.rglob("*") if p.is_file())
+                result = JobResult(psnr=report.aggregate.psnr.all, ssim=report.aggregate.ssim.all,
+                                   artifacts=artifacts, size_bytes=report.size.total_bytes,
+                                   bits_per_texel=report.size.bits_per_texel)
+                # The result describes itself before the store hears of it: if recording fails for good, or the
+                # store loses the record, recovery finds it complete on disk (or committed in object storage).
+                record = job.ended("succeeded", monitor.progress, result=result)
+                self.queue.keep_record(record)
+                if self.queue.storage.remote:  # under the monitor: a slow upload keeps the heartbeat going
+                    monitor.on_note("uploading")
+                    log.info("job %s: uploading %d result files to %s", job.id, len(artifacts),
+                             self.settings.storage_url)
+                    self.queue.storage.put_artifacts(job.id, output, record)
             except TrainingStopped:
                 if time.monotonic() > deadline and not monitor.cancel.is_set() and not self.stopping():
                     limit = (f"stopped after {time.perf_counter() - started:.0f} s: longer than the wall-clock limit "
@@ -191,23 +208,36 @@ class Worker:
                 self._end(job.id, lambda held: held.ended("cancelled", monitor.progress), "its cancellation")
                 log.info("job %s: cancelled", job.id)
                 return
+            except ObjectStoreUnavailable as exc:  # the store's trouble: another attempt may get through
+                self._storage_failed(job, exc, monitor.progress)
+                return
             except Exception as exc:  # any failure of one job is that job's, not the worker's
                 message = failure_text(exc, file=lambda path: Path(path).name)  # never server paths
                 self._end(job.id, lambda held: held.ended("failed", monitor.progress, error=message),
                           "its failure")
                 log.error("job %s: failed: %s\n%s", job.id, message, traceback.format_exc())
                 return
-        artifacts = sorted(str(p.relative_to(output)) for p in output.rglob("*") if p.is_file())
-        result = JobResult(psnr=report.aggregate.psnr.all, ssim=report.aggregate.ssim.all, artifacts=artifacts,
-                           size_bytes=report.size.total_bytes, bits_per_texel=report.size.bits_per_texel)
-        # The result describes itself before the store hears of it: if recording fails for good, or the store
-        # loses the record, recovery finds it complete on disk.
-        self.queue.keep_record(job.ended("succeeded", monitor.progress, result=result))
         done = self._end(job.id, lambda held: held.ended("succeeded", monitor.progress, result=result),
                          "its result")
+        if self.queue.storage.remote:  # committed in object storage: the local copy was scratch
+            shutil.rmtree(output, ignore_errors=True)
         if done is not None and done.state == "succeeded":
             log.info("job %s: succeeded in %.1f s, %.2f dB", job.id, time.perf_counter() - started,
                      report.aggregate.psnr.all)
+
+    def _storage_failed(self, job: Job, exc: ObjectStoreUnavailable, progress: JobProgress) -> None:
+        """Object storage failed the attempt: back in the queue while attempts are left, else failed saying why."""
+        if self.queue.storage.remote:  # scratch copies: the next attempt, on any worker, fetches the inputs again
+            shutil.rmtree(self.queue.artifacts_path(job.id), ignore_errors=True)
+            self.queue.remove_local_inputs(job.id)
+        if job.attempts < self.settings.max_attempts:
+            log.warning("job %s: attempt %d of %d failed, object storage unavailable (%s); back in the queue",
+                        job.id, job.attempts, self.settings.max_attempts, exc)
+            self.release(job.id)
+            return
+        message = f"gave up after {job.attempts} attempts (BCF_MAX_ATTEMPTS): {exc}"
+        self._end(job.id, lambda held: held.ended("failed", progress, error=message), "its failure")
+        log.error("job %s: %s", job.id, message)
 
     def _record_notes(self, job_id: str, notes: tuple[str, ...]) -> None:
         """What decoding the pixels noticed (a flipped-looking normal map, clipped values) joins the notes the
@@ -247,9 +277,10 @@ class Worker:
                                                    initial_delay=0.1, backoff=1.15, max_delay=1.0,
                                                    graceful_signal="TERM")
         self._consumer_stop = consumer.stop_flag  # set by huey on a signal: our jobs stop too
-        log.info("worker %s: %s mode, device %s, %d at a time, data in %s", self.id,
+        log.info("worker %s: %s mode, device %s, %d at a time, data in %s%s", self.id,
                  "farm (Redis)" if self.settings.farm_mode else "embedded (SQLite)", self.device, concurrency,
-                 self.settings.data_dir)
+                 self.settings.data_dir, f", inputs and results in {self.settings.storage_url}"
+                 if self.settings.storage_url else "")
         self._recover()
         recovery = threading.Thread(target=self._recover_forever, name="recovery", daemon=True)
         recovery.start()

@@ -16,7 +16,7 @@ from typing import Annotated, Any, Callable, Literal, Optional
 from fastapi import APIRouter, Depends, FastAPI, HTTPException, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse
+from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse, StreamingResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from pydantic import BaseModel, Field
 from starlette.background import BackgroundTask
@@ -28,6 +28,7 @@ from bcf.core import REPORT_FILE, Report, __version__
 from bcf.jobs.queue import JobQueue
 from bcf.jobs.records import DEFAULT_TENANT, FINAL_STATES, Job, JobState, JobView
 from bcf.jobs.settings import Settings
+from bcf.jobs.storage import ObjectStoreUnavailable
 from bcf.jobs.store import StoreUnavailable, free_disk_bytes
 from bcf.jobs.supervisor import WorkerStatus
 from bcf.service.metrics import prometheus_text
@@ -242,7 +243,8 @@ _ERRORS = {400: "a malformed form: an unknown or repeated field, both a zip and 
            413: "upload over BCF_MAX_UPLOAD_MB, or a material zip over BCF_MAX_UNZIPPED_MB",
            415: "a file is not an accepted image, or the material not a zip",
            422: "a parameter, the options or the material cannot be used",
-           503: "the job store does not answer; retry after Retry-After seconds",
+           503: "the job store (or the object storage of BCF_STORAGE_URL) does not answer; retry after "
+                "Retry-After seconds",
            507: "not enough disk space: the upload would leave less than BCF_MIN_FREE_DISK_MB free, or the disk "
                 "filled while it was stored"}
 
@@ -355,11 +357,25 @@ def cancel_job(job: StoredJob, queue: QueueDep, response: Response,
     return job
 
 
+def _artifact_response(queue: JobQueue, job: Job, name: str, media_type: str,
+                       filename: Optional[str] = None) -> Response:
+    """A result file: from the data folder as a file, or streamed from object storage."""
+    if not queue.storage.remote:
+        return FileResponse(queue.artifacts_path(job.id) / name, media_type=media_type, filename=filename)
+    try:
+        body = queue.storage.open_artifact(job.id, name)
+    except FileNotFoundError:
+        raise HTTPException(404, f"job {job.id}'s artifact {name!r} is missing from object storage") from None
+    headers = {"Content-Disposition": f'attachment; filename="{filename}"'} if filename else None
+    return StreamingResponse(iter(lambda: body.read(2**20), b""), media_type=media_type, headers=headers,
+                             background=BackgroundTask(body.close))
+
+
 @routes.get("/v1/jobs/{job_id}/report", tags=["results"], response_class=FileResponse,
             responses={200: {"model": Report, "description": "report.json"}, **_errors(404, 409, 410, 422)})
-def get_report(job: SucceededJob, queue: QueueDep) -> FileResponse:
+def get_report(job: SucceededJob, queue: QueueDep) -> Response:
     """The job's report.json (the schema is in docs/FORMAT.md)."""
-    return FileResponse(queue.artifacts_path(job.id) / REPORT_FILE, media_type="application/json")
+    return _artifact_response(queue, job, REPORT_FILE, "application/json")
 
 
 @routes.get("/v1/jobs/{job_id}/artifacts", tags=["results"], response_class=FileResponse,
@@ -377,13 +393,13 @@ def get_artifacts(job: SucceededJob, queue: QueueDep, settings: SettingsDep) -> 
             responses={200: {"content": _ARTIFACT_CONTENT,
                              "description": "the file: JSON, HTML, or binary (DDS, KTX2, ASTC, decoder.bin)"},
                        **_errors(404, 409, 410, 422)})
-def get_artifact(job: SucceededJob, name: str, queue: QueueDep) -> FileResponse:
+def get_artifact(job: SucceededJob, name: str, queue: QueueDep) -> Response:
     """One result file by its name in the job's `result.artifacts`."""
     artifacts = job.result.artifacts if job.result else []
     if name not in artifacts:
         raise HTTPException(404, f"job {job.id} has no artifact {name!r}; it has {', '.join(artifacts) or 'none'}")
-    return FileResponse(queue.artifacts_path(job.id) / name, filename=Path(name).name,
-                        media_type=ARTIFACT_TYPES.get(Path(name).suffix.lower(), "application/octet-stream"))
+    return _artifact_response(queue, job, name, ARTIFACT_TYPES.get(Path(name).suffix.lower(),
+                                                                   "application/octet-stream"), Path(name).name)
 
 
 # ------------------------------------------------------------------------------------------ the application
@@ -391,6 +407,11 @@ def get_artifact(job: SucceededJob, name: str, queue: QueueDep) -> FileResponse:
 
 async def _store_down(request: Request, exc: StoreUnavailable) -> JSONResponse:
     return JSONResponse({"detail": f"job store unavailable, retry later: {exc}"}, status_code=503,
+                        headers={"Retry-After": "5"})
+
+
+async def _object_store_down(request: Request, exc: ObjectStoreUnavailable) -> JSONResponse:
+    return JSONResponse({"detail": f"object storage unavailable, retry later: {exc}"}, status_code=503,
                         headers={"Retry-After": "5"})
 
 
@@ -417,6 +438,7 @@ def create_app(settings: Settings, workers: Optional[Callable[[], WorkerStatus]]
     app.state.settings, app.state.queue, app.state.workers = settings, JobQueue(settings), workers
     app.state.refusals = Refusals()
     app.add_exception_handler(StoreUnavailable, _store_down)  # type: ignore[arg-type]
+    app.add_exception_handler(ObjectStoreUnavailable, _object_store_down)  # type: ignore[arg-type]
     app.add_exception_handler(RequestValidationError, _invalid)  # type: ignore[arg-type]
     app.add_exception_handler(405, _method_not_allowed)  # type: ignore[arg-type]
     app.include_router(open_routes)

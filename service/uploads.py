@@ -21,6 +21,7 @@ from fastapi import File, Form, HTTPException, Request, UploadFile
 from pydantic import Json
 
 from bcf.core import IMAGE_EXTENSIONS, ROLES, InputError, JobOptions
+from bcf.jobs.callbacks import CallbackError, checked_callback_url
 from bcf.jobs.queue import JobQueue
 from bcf.jobs.records import Job
 from bcf.jobs.settings import Settings
@@ -29,13 +30,14 @@ from bcf.jobs.submission import StagedMaterial, submit_material
 
 __all__ = ["DiskFull", "Upload", "client_message", "read_upload", "submit_upload"]
 
-FORM_FIELDS = (*ROLES, "material", "options")
+FORM_FIELDS = (*ROLES, "material", "options", "callback_url")
 ACCEPTED_FORMATS = "PNG, JPEG, EXR, TIFF or TGA"
 # Leading bytes of each accepted format but TGA (which has none), and the file extensions that format goes by.
 _SIGNATURES = ((b"\x89PNG\r\n\x1a\n", (".png",)), (b"\xff\xd8\xff", (".jpg", ".jpeg")),
                (b"\x76\x2f\x31\x01", (".exr",)), (b"II*\x00", (".tif", ".tiff")), (b"MM\x00*", (".tif", ".tiff")))
 _COPY_CHUNK = 1 << 20
-Upload = tuple[dict[str, UploadFile], JobOptions]  # the files by form field (a role, or "material"), the options
+# The files by form field (a role, or "material"), the options, the callback URL.
+Upload = tuple[dict[str, UploadFile], JobOptions, Optional[str]]
 _DISK_FULL = (errno.ENOSPC, errno.EDQUOT)
 
 
@@ -51,7 +53,10 @@ async def read_upload(request: Request,
                       metalness: Optional[UploadFile] = File(None),
                       material: Optional[UploadFile] = File(None, description="zip of a material folder, "
                                                                               "instead of the files per role"),
-                      options: Optional[Json[JobOptions]] = Form(None, description='e.g. {"preset": "fast"}')
+                      options: Optional[Json[JobOptions]] = Form(None, description='e.g. {"preset": "fast"}'),
+                      callback_url: Optional[str] = Form(
+                          None, description="http(s) URL POSTed the job object when the job ends, signed with "
+                                            "BCF_CALLBACK_SECRET (X-Bcf-Signature: sha256=<hex HMAC>)")
                       ) -> Upload:
     """The form of POST /v1/jobs (a FastAPI dependency, so OpenAPI lists the fields and FastAPI checks the
     options): files per role or a zip, and the options; 400 for fields it does not know or that appear twice."""
@@ -63,7 +68,11 @@ async def read_upload(request: Request,
         raise HTTPException(400, "each form field may appear once")
     given = {"albedo": albedo, "normal": normal, "arm": arm, "ao": ao, "roughness": roughness,
              "metalness": metalness, "material": material}
-    return {name: f for name, f in given.items() if f is not None}, options or JobOptions()
+    try:
+        url = checked_callback_url(callback_url)
+    except CallbackError as exc:
+        raise HTTPException(422, str(exc)) from None
+    return {name: f for name, f in given.items() if f is not None}, options or JobOptions(), url
 
 
 # ---------------------------------------------------------------------------------------------- role files
@@ -220,9 +229,9 @@ def _staged_and_submitted(queue: JobQueue, upload: Upload, tenant: str) -> tuple
     uploads = queue.settings.uploads_dir
     uploads.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix="upload-", dir=uploads, ignore_cleanup_errors=True) as staging:
-        files, options = upload
+        files, options, callback_url = upload
         staged = _stage(files, Path(staging), queue.settings)
         try:
-            return submit_material(queue, staged, options, tenant)
+            return submit_material(queue, staged, options, tenant, callback_url)
         except InputError as exc:
             raise HTTPException(422, client_message(exc, staged)) from None

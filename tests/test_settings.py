@@ -38,6 +38,14 @@ def test_a_queue_url_that_is_not_redis_is_rejected() -> None:
         Settings(_env_file=None, queue_url="amqp://rabbit")
 
 
+def test_a_storage_url_must_be_s3_with_a_bucket() -> None:
+    assert Settings(_env_file=None, storage_url="s3://farm/bcf").storage_url == "s3://farm/bcf"
+    assert Settings(_env_file=None, storage_url=" ").storage_url is None  # blank: the data folder
+    for url in ("/mnt/shared", "gs://bucket", "s3://", "s3:///prefix"):
+        with pytest.raises(ValidationError, match="s3://bucket/prefix"):
+            Settings(_env_file=None, storage_url=url)
+
+
 def test_bad_settings_make_the_commands_exit_2_with_the_variable_named(tmp_path: Path) -> None:
     env = {**ONE_THREAD_ENV, "BCF_DATA_DIR": str(tmp_path), "BCF_MAX_UPLOAD_MB": "-1"}
     for command in ("serve", "worker"):
