@@ -2,9 +2,9 @@
 object POSTed there when it ends (succeeded, failed or cancelled).
 
 Each delivery runs on a daemon thread of its own, so a slow or dead receiver never holds up the worker or the
-API; it is tried `BCF_CALLBACK_ATTEMPTS` times with exponential backoff (any 2xx answer ends it), then given up
-with a log line. With `BCF_CALLBACK_SECRET` the body is signed: `X-Bcf-Signature: sha256=<hex HMAC-SHA256 of
-the body>`, so a receiver can tell the callback came from this service and was not altered.
+API; it is tried `BCF_CALLBACK_ATTEMPTS` times with exponential backoff (tenacity; any 2xx answer ends it), then
+given up with a log line. With `BCF_CALLBACK_SECRET` the body is signed: `X-Bcf-Signature: sha256=<hex
+HMAC-SHA256 of the body>`, so a receiver can tell the callback came from this service and was not altered.
 """
 
 from __future__ import annotations
@@ -13,11 +13,11 @@ import hashlib
 import hmac
 import logging
 import threading
-import time
 from typing import Optional
 
 import httpx
 from pydantic import HttpUrl, TypeAdapter, ValidationError
+from tenacity import RetryCallState, Retrying, retry_if_exception_type, stop_after_attempt, wait_exponential
 
 from bcf.jobs.records import Job, JobView
 from bcf.jobs.settings import Settings
@@ -69,21 +69,28 @@ def send_callback(job: Job, settings: Settings) -> Optional[threading.Thread]:
     return thread
 
 
+class _Refused(Exception):
+    """The receiver answered, but not with a 2xx."""
+
+
+def _post(url: str, body: bytes, headers: dict[str, str]) -> None:
+    answer = httpx.post(url, content=body, headers=headers, timeout=TIMEOUT_S)
+    if not answer.is_success:
+        raise _Refused(f"HTTP {answer.status_code}")
+
+
 def _deliver(job_id: str, url: str, body: bytes, headers: dict[str, str], attempts: int) -> None:
-    pause = FIRST_PAUSE_S
-    problem = ""
-    for attempt in range(1, attempts + 1):
-        try:
-            answer = httpx.post(url, content=body, headers=headers, timeout=TIMEOUT_S)
-            if answer.is_success:
-                log.info("job %s: callback delivered (attempt %d)", job_id, attempt)
-                return
-            problem = f"HTTP {answer.status_code}"
-        except httpx.HTTPError as exc:
-            problem = f"{type(exc).__name__}: {exc}"
-        if attempt < attempts:
-            log.warning("job %s: callback attempt %d of %d failed (%s); again in %.1f s", job_id, attempt,
-                        attempts, problem, pause)
-            time.sleep(pause)
-            pause = min(pause * 2, LONGEST_PAUSE_S)
-    log.error("job %s: callback to its callback_url given up after %d attempts (%s)", job_id, attempts, problem)
+    def note_retry(state: RetryCallState) -> None:
+        log.warning("job %s: callback attempt %d of %d failed (%s); again in %.1f s", job_id, state.attempt_number,
+                    attempts, state.outcome.exception() if state.outcome else "", state.upcoming_sleep)
+
+    retrying = Retrying(stop=stop_after_attempt(attempts), reraise=True, before_sleep=note_retry,
+                        wait=wait_exponential(multiplier=FIRST_PAUSE_S, max=LONGEST_PAUSE_S),
+                        retry=retry_if_exception_type((httpx.HTTPError, _Refused)))
+    try:
+        retrying(_post, url, body, headers)
+    except (httpx.HTTPError, _Refused) as exc:
+        log.error("job %s: callback to its callback_url given up after %d attempts (%s: %s)", job_id, attempts,
+                  type(exc).__name__, exc)
+        return
+    log.info("job %s: callback delivered (attempt %d)", job_id, retrying.statistics.get("attempt_number", 1))

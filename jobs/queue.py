@@ -22,8 +22,8 @@ from huey import Huey, RedisHuey, SqliteHuey
 
 from bcf.core import staging_leftovers
 from bcf.jobs.callbacks import send_callback
-from bcf.jobs.records import FINAL_STATES, Job, utc_now
-from bcf.jobs.recovery import RECORD_FILE, RecoveryReport, finished_record, rebuild_records, write_record
+from bcf.jobs.records import FINAL_STATES, RECORD_FILE, Job, utc_now, write_record
+from bcf.jobs.recovery import RecoveryReport, finished_record, rebuild_records
 from bcf.jobs.settings import Settings
 from bcf.jobs.storage import JobStorage, ObjectStoreUnavailable, open_storage
 from bcf.jobs.store import JobStore, StoreUnavailable, open_store, sqlite_failure
@@ -60,7 +60,7 @@ class JobQueue:
         # functions must share both, or workers find no task for the API's messages (only recovery re-sent them).
         self._task = self.huey.task(name=RUN_JOB_TASK)(run_job)
         # After the queue, so that a rebuild (which may re-queue jobs) can run from the store's first operation.
-        self.store: JobStore = open_store(settings, on_recreated=self._rebuild_lost)
+        self.store: JobStore = open_store(settings, on_recreated=self.rebuild)
 
     def enqueue(self, job_id: str) -> None:
         """Send the job's message; StoreUnavailable (StoreFull: its disk is full) if the SQLite queue fails."""
@@ -152,9 +152,6 @@ class JobQueue:
         """`rebuild` if the store lost its records (or is new), else None."""
         return self.rebuild() if self.store.needs_rebuild() else None
 
-    def _rebuild_lost(self) -> None:
-        self.rebuild()
-
     def pending_messages(self) -> int:
         return self.huey.pending_count()
 
@@ -234,9 +231,8 @@ class JobQueue:
         if job is not None and job.purged_at is not None:
             shutil.rmtree(self.artifacts_path(job.id), ignore_errors=True)
             if self.storage.remote:
-                try:
+                try:  # the inputs go in `settle`, as for any ended job
                     self.storage.remove_artifacts(job.id)
-                    self.storage.remove_inputs(job.id)
                 except ObjectStoreUnavailable as exc:  # the tombstone stands: nothing serves these objects
                     log.warning("job %s: purged, but its objects were not all removed: %s", job.id, exc)
             self.settle(job)  # the tombstone is what a rebuild restores

@@ -6,18 +6,22 @@ answers with a public view of it instead."""
 from __future__ import annotations
 
 import datetime
+import logging
+from pathlib import Path
 from typing import Literal, Optional, get_args
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from bcf.core import JobOptions, Role
+from bcf.core import JobOptions, Role, write_text_atomic
 
 __all__ = ["DEFAULT_TENANT", "FINAL_STATES", "JOB_STATES", "InputFile", "InputView", "Job", "JobProgress", "JobResult", "JobState",
-           "JobView", "utc_now"]
+           "JobView", "RECORD_FILE", "read_record", "utc_now", "write_record"]
 
 JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 JOB_STATES: tuple[JobState, ...] = get_args(JobState)
 FINAL_STATES: frozenset[str] = frozenset({"succeeded", "failed", "cancelled"})
+RECORD_FILE = "job.json"  # a job's record kept beside its inputs and results (bcf.jobs.recovery)
+log = logging.getLogger("bcf.jobs")
 DEFAULT_TENANT = "default"  # the owner of jobs submitted with a bare token, or with none (loopback only)
 
 
@@ -124,3 +128,30 @@ class Job(JobView, _Model):
             return None
         return (self.finished_at - self.started_at).total_seconds()
 
+
+# ------------------------------------------------------------------------------- the record as a file
+
+
+def write_record(folder: Path, job: Job) -> bool:
+    """`job` as `folder/job.json`, written atomically, if `folder` exists; False (and a warning) if it cannot be:
+    the store still has the record, this is its copy."""
+    if not folder.is_dir():
+        return False
+    try:
+        write_text_atomic(folder / RECORD_FILE, job.model_dump_json(indent=1))
+    except OSError as exc:
+        log.warning("job %s: its record could not be kept in %s: %s", job.id, folder, exc)
+        return False
+    return True
+
+
+def read_record(folder: Path) -> Optional[Job]:
+    """The record in `folder/job.json`, if there is a readable one of the job the folder is named after."""
+    try:
+        job = Job.model_validate_json((folder / RECORD_FILE).read_bytes())
+    except FileNotFoundError:
+        return None
+    except (OSError, ValidationError, ValueError) as exc:
+        log.warning("%s: unreadable job record: %s", folder / RECORD_FILE, exc)
+        return None
+    return job if job.id == folder.name else None

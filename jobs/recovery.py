@@ -16,17 +16,16 @@ import logging
 from pathlib import Path
 from typing import TYPE_CHECKING, Optional
 
-from pydantic import BaseModel, ValidationError
+from pydantic import BaseModel
 
-from bcf.core import write_text_atomic
-from bcf.jobs.records import Job
+from bcf.jobs.records import RECORD_FILE, Job, read_record
+from bcf.jobs.storage import ObjectStoreUnavailable
 
 if TYPE_CHECKING:
     from bcf.jobs.queue import JobQueue
 
-__all__ = ["RECORD_FILE", "RecoveryReport", "finished_record", "read_record", "rebuild_records", "write_record"]
+__all__ = ["RecoveryReport", "finished_record", "rebuild_records"]
 
-RECORD_FILE = "job.json"
 log = logging.getLogger("bcf.jobs")
 
 
@@ -52,37 +51,10 @@ class RecoveryReport(BaseModel):
         return [f"{what}: {len(items)}" + (f": {', '.join(items)}" if items else "") for what, items in kinds]
 
 
-def write_record(folder: Path, job: Job) -> bool:
-    """`job` as `folder/job.json`, written atomically, if `folder` exists; False (and a warning) if it cannot be:
-    the store still has the record, this is its copy."""
-    if not folder.is_dir():
-        return False
-    try:
-        write_text_atomic(folder / RECORD_FILE, job.model_dump_json(indent=1))
-    except OSError as exc:
-        log.warning("job %s: its record could not be kept in %s: %s", job.id, folder, exc)
-        return False
-    return True
-
-
-def read_record(folder: Path) -> Optional[Job]:
-    """The record in `folder/job.json`, if there is a readable one of the job the folder is named after."""
-    try:
-        job = Job.model_validate_json((folder / RECORD_FILE).read_bytes())
-    except FileNotFoundError:
-        return None
-    except (OSError, ValidationError, ValueError) as exc:
-        log.warning("%s: unreadable job record: %s", folder / RECORD_FILE, exc)
-        return None
-    return job if job.id == folder.name else None
-
-
 def finished_record(queue: "JobQueue", job_id: str) -> Optional[Job]:
     """The succeeded record of the job's complete result in its storage (`bcf.jobs.storage`): in the data folder,
     the artifacts folder's job.json if the folder holds every file it names; in object storage, the commit
     marker's. None also when the object storage does not answer (the next pass asks again)."""
-    from bcf.jobs.storage import ObjectStoreUnavailable
-
     try:
         return queue.storage.finished_record(job_id)
     except ObjectStoreUnavailable as exc:

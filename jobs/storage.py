@@ -23,14 +23,13 @@ from typing import IO, Any, Callable, Optional, Protocol
 
 from pydantic import BaseModel, ValidationError
 
-from bcf.jobs.records import Job
+from bcf.jobs.records import RECORD_FILE, Job, read_record
 from bcf.jobs.settings import Settings
 from bcf.jobs.store import StoreUnavailable
 
 __all__ = ["COMMIT_MARKER", "JobStorage", "LocalStorage", "S3Storage", "ObjectStoreUnavailable", "open_storage"]
 
 COMMIT_MARKER = "COMMITTED.json"
-RECORD_FILE = "job.json"  # as bcf.jobs.recovery names it (imported from there would be circular)
 
 
 class ObjectStoreUnavailable(StoreUnavailable):
@@ -113,8 +112,6 @@ class LocalStorage:
         pass  # the result was staged and renamed into place by `compress_material`; its job.json marks it
 
     def finished_record(self, job_id: str) -> Optional[Job]:
-        from bcf.jobs.recovery import read_record  # recovery imports the queue, which imports this module
-
         folder = self.data_dir / "artifacts" / job_id
         job = read_record(folder)
         if job is None or job.state != "succeeded" or job.result is None:

@@ -109,7 +109,7 @@ class SqliteJobStore:
     aside (`jobs.db.corrupt-<time>`, never deleted) and starts a new one; then `on_recreated` (the queue's
     rebuild from the data folder, `bcf.jobs.recovery`) runs and the operation is tried once more."""
 
-    def __init__(self, path: Path, on_recreated: Optional[Callable[[], None]] = None):
+    def __init__(self, path: Path, on_recreated: Optional[Callable[[], object]] = None):
         self.path = Path(path)
         self.on_recreated = on_recreated
         self.moved_aside: list[Path] = []  # unreadable database files this store moved aside
@@ -306,6 +306,14 @@ class RedisJobStore:
                 except self._watch_error:
                     continue
 
+    def _write_new(self, pipe, job: Job) -> None:
+        """Queue, in a MULTI, the record of a job new to the store and its entries in every index."""
+        score = job.created_at.timestamp()
+        pipe.set(self._name("job", job.id), job.model_dump_json())
+        pipe.zadd(f"{self.prefix}:jobs", {job.id: score})
+        pipe.zadd(self._name("state", job.state), {job.id: score})
+        pipe.zadd(self._name("tenant", job.tenant), {job.id: score})
+
     def add(self, job: Job) -> tuple[Job, bool]:
         def body(pipe) -> tuple[Job, bool]:
             holder = pipe.get(self._name("key", job.input_key))
@@ -316,13 +324,9 @@ class RedisJobStore:
                     if existing.state in _KEY_HOLDING_STATES and existing.purged_at is None:
                         pipe.unwatch()
                         return existing, False
-            score = job.created_at.timestamp()
             pipe.multi()
-            pipe.set(self._name("job", job.id), job.model_dump_json())
+            self._write_new(pipe, job)
             pipe.set(self._name("key", job.input_key), job.id)
-            pipe.zadd(f"{self.prefix}:jobs", {job.id: score})
-            pipe.zadd(self._name("state", job.state), {job.id: score})
-            pipe.zadd(self._name("tenant", job.tenant), {job.id: score})
             pipe.execute()
             return job, True
 
@@ -389,14 +393,10 @@ class RedisJobStore:
             if pipe.exists(self._name("job", job.id)):
                 pipe.unwatch()
                 return False
-            score = job.created_at.timestamp()
             pipe.multi()
-            pipe.set(self._name("job", job.id), job.model_dump_json())
+            self._write_new(pipe, job)
             if job.state in _KEY_HOLDING_STATES:  # unless a job submitted since holds the key
                 pipe.set(self._name("key", job.input_key), job.id, nx=True)
-            pipe.zadd(f"{self.prefix}:jobs", {job.id: score})
-            pipe.zadd(self._name("state", job.state), {job.id: score})
-            pipe.zadd(self._name("tenant", job.tenant), {job.id: score})
             pipe.execute()
             return True
 
@@ -412,7 +412,7 @@ class RedisJobStore:
             self.client.set(f"{self.prefix}:rebuilt_at", utc_now().isoformat())
 
 
-def open_store(settings: Settings, on_recreated: Optional[Callable[[], None]] = None) -> JobStore:
+def open_store(settings: Settings, on_recreated: Optional[Callable[[], object]] = None) -> JobStore:
     """Redis when BCF_QUEUE_URL is set, else SQLite in the data directory (which calls `on_recreated` after
     recreating a lost or corrupt database file)."""
     if settings.queue_url:

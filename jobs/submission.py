@@ -60,9 +60,9 @@ def _new_job(material: StagedMaterial, files: dict[Role, Path], inspected: Inspe
 
 def submit_material(queue: JobQueue, material: StagedMaterial, options: JobOptions,
                     tenant: str = DEFAULT_TENANT, callback_url: Optional[str] = None) -> tuple[Job, bool]:
-    """Validate the material from its files' headers (roles, formats, sizes, the pixel limit; no pixel is decoded
-    here: the worker decodes, and a corrupt file fails the job), store its inputs, queue the job: (job, created). Resubmitting a queued, running or succeeded job's inputs and options
-    returns that job. Raises `bcf.core.InputError` for whatever the client must fix."""
+    """Validate the material from its files' headers (roles, formats, sizes, the pixel limit, the memory estimate;
+    no pixel is decoded here: the worker decodes, and a corrupt file fails the job), store its inputs, queue the
+    job: (job, created). Resubmitting a queued, running or succeeded job's inputs and options returns that job. Raises `bcf.core.InputError` for whatever the client must fix."""
     if "device" in options.model_fields_set:  # any worker may take the job: the device is the worker's
         raise InputError("{} is chosen by the worker that runs the job ('bcf worker --device')",
                          fix="remove it from the options", options=["device"])
@@ -80,25 +80,23 @@ def submit_material(queue: JobQueue, material: StagedMaterial, options: JobOptio
         queue.storage.put_inputs(job.id, folder)  # object storage: where the workers fetch them from
         stored_job, created = queue.submit(job)
     except BaseException:
-        shutil.rmtree(folder, ignore_errors=True)
-        if queue.storage.remote:
-            _forget_inputs(queue, job.id)
+        _discard_inputs(queue, job.id)
         raise
     if not created:
-        shutil.rmtree(folder, ignore_errors=True)  # the existing job has its own copy
-        if queue.storage.remote:
-            _forget_inputs(queue, job.id)
+        _discard_inputs(queue, job.id)  # the existing job has its own copy
     elif queue.storage.remote:
         queue.remove_local_inputs(job.id)  # the local copy was staging: workers read the stored one
     return stored_job, created
 
 
-def _forget_inputs(queue: JobQueue, job_id: str) -> None:
-    """Inputs uploaded for a job that was not created (a duplicate, or a failed submission)."""
-    try:
-        queue.storage.remove_inputs(job_id)
-    except ObjectStoreUnavailable:
-        pass  # unreferenced objects: nothing reads them
+def _discard_inputs(queue: JobQueue, job_id: str) -> None:
+    """The inputs stored for a job that was not created (a duplicate, or a failed submission)."""
+    shutil.rmtree(queue.inputs_path(job_id), ignore_errors=True)
+    if queue.storage.remote:
+        try:
+            queue.storage.remove_inputs(job_id)
+        except ObjectStoreUnavailable:
+            pass  # unreferenced objects: nothing reads them
 
 
 def _check_memory(inspected: InspectedMaterial, options: JobOptions, settings: Settings) -> None:

@@ -19,6 +19,8 @@ import uuid
 from pathlib import Path
 from typing import Any, Callable, Optional
 
+from tenacity import RetryCallState, Retrying, retry_if_exception_type, wait_exponential
+
 from bcf.core import TrainingProgress, TrainingStopped, compress_material, failure_text, resolve_options
 from bcf.jobs.queue import JobQueue
 from bcf.jobs.records import FINAL_STATES, Job, JobProgress, JobResult, utc_now
@@ -118,18 +120,20 @@ class Worker:
         """`_update_held`, again and again while the store fails (Redis down, a locked or lost database): an
         outcome is not dropped. Gives up only when the worker stops; a result's job.json in its artifacts folder
         then lets the next recovery pass record it (`bcf.jobs.recovery`)."""
-        pause = 0.5
-        while True:
-            try:
-                return self._update_held(job_id, change)
-            except Exception as exc:  # whatever the store raises: the store's trouble, not the job's
-                if self.stopping():
-                    log.error("job %s: %s not recorded (%s); the worker is stopping: recovery records it from the "
-                              "data folder", job_id, what, exc)
-                    return None
-                log.warning("job %s: %s not recorded yet (%s); trying again in %.1f s", job_id, what, exc, pause)
-                self.shutdown.wait(pause)
-                pause = min(pause * 2, RECORD_RETRY_MAX_S)
+        def note_retry(state: RetryCallState) -> None:
+            log.warning("job %s: %s not recorded yet (%s); trying again in %.1f s", job_id, what,
+                        state.outcome.exception() if state.outcome else "", state.upcoming_sleep)
+
+        # Whatever the store raises is the store's trouble, not the job's; the pause ends early at shutdown.
+        retrying = Retrying(retry=retry_if_exception_type(Exception), stop=lambda state: self.stopping(),
+                            wait=wait_exponential(multiplier=0.5, max=RECORD_RETRY_MAX_S), sleep=self.shutdown.wait,
+                            before_sleep=note_retry, reraise=True)
+        try:
+            return retrying(self._update_held, job_id, change)
+        except Exception as exc:
+            log.error("job %s: %s not recorded (%s); the worker is stopping: recovery records it from the data "
+                      "folder", job_id, what, exc)
+            return None
 
     def _end(self, job_id: str, change: Callable[[Job], Job], what: str) -> Optional[Job]:
         """Record the outcome (`_record`), then settle the job: its record beside its files, its input images

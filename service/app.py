@@ -406,12 +406,8 @@ def get_artifact(job: SucceededJob, name: str, queue: QueueDep) -> Response:
 
 
 async def _store_down(request: Request, exc: StoreUnavailable) -> JSONResponse:
-    return JSONResponse({"detail": f"job store unavailable, retry later: {exc}"}, status_code=503,
-                        headers={"Retry-After": "5"})
-
-
-async def _object_store_down(request: Request, exc: ObjectStoreUnavailable) -> JSONResponse:
-    return JSONResponse({"detail": f"object storage unavailable, retry later: {exc}"}, status_code=503,
+    what = "object storage" if isinstance(exc, ObjectStoreUnavailable) else "job store"
+    return JSONResponse({"detail": f"{what} unavailable, retry later: {exc}"}, status_code=503,
                         headers={"Retry-After": "5"})
 
 
@@ -437,8 +433,7 @@ def create_app(settings: Settings, workers: Optional[Callable[[], WorkerStatus]]
                               "get BC6H feature textures, MLP weights and a quality report.")
     app.state.settings, app.state.queue, app.state.workers = settings, JobQueue(settings), workers
     app.state.refusals = Refusals()
-    app.add_exception_handler(StoreUnavailable, _store_down)  # type: ignore[arg-type]
-    app.add_exception_handler(ObjectStoreUnavailable, _object_store_down)  # type: ignore[arg-type]
+    app.add_exception_handler(StoreUnavailable, _store_down)  # type: ignore[arg-type]  # and ObjectStoreUnavailable
     app.add_exception_handler(RequestValidationError, _invalid)  # type: ignore[arg-type]
     app.add_exception_handler(405, _method_not_allowed)  # type: ignore[arg-type]
     app.include_router(open_routes)

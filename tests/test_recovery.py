@@ -20,7 +20,8 @@ import redis
 from bcf.core.options import JobOptions
 from bcf.jobs.queue import JobQueue
 from bcf.jobs.records import InputFile, Job, JobResult, utc_now
-from bcf.jobs.recovery import RecoveryReport, read_record, write_record
+from bcf.jobs.records import read_record, write_record
+from bcf.jobs.recovery import RecoveryReport
 from bcf.jobs.settings import Settings
 from bcf.jobs.store import JobStore, RedisJobStore, SqliteJobStore
 from bcf_command import BCF
